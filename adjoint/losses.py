@@ -1,0 +1,50 @@
+"""Back-propagation initialization (eq 41-46): loss seeds on the final step's particles."""
+import taichi as ti
+
+from mls_mpm.kernels import node_weight, stencil, weights
+from mls_mpm.losses import node_penalty, node_residual, splat_value
+
+from .state import zero_step
+
+
+@ti.kernel
+def grid_loss_reverse(s: ti.template(), g: ti.template()):
+    """dL/dm_i = w_g alpha_i (m_i - m_iu) (eq 41, 72); log loss: w_g alpha_i r_i / (m_i + 1)."""
+    for I in ti.grouped(g.m):
+        r = node_penalty(g, I) * node_residual(g, I)
+        if ti.static(g.kind == "log_mass"):
+            r /= g.m[I] + 1.0  # m_i >= 0, so no division by zero
+        g.adj_m[I] = r
+
+
+@ti.kernel
+def splat_reverse(s: ti.template(), g: ti.template(), a: ti.template(), f: ti.i32):
+    """dL/dx_p += sum_i dN/dx_p (value_p . dL/dm_i) with g's dx (eq 42-43)."""
+    for p in range(s.n_particles):
+        base, fx = stencil(s.x[f, p], g.inv_dx)
+        w, dw = weights(fx)
+        value = splat_value(s, g, p)
+        adj_x = ti.Vector.zero(float, 2)
+        for i, j in ti.static(ti.ndrange(4, 4)):
+            I = base + ti.Vector([i, j])
+            if 0 <= I[0] < g.res and 0 <= I[1] < g.res:
+                _, dN = node_weight(w, dw, ti.Vector([i, j]), g.inv_dx)
+                adj_x += dN * value.dot(g.adj_m[I])
+        a.adj_x[f % 2, p] += adj_x
+
+
+@ti.kernel
+def position_loss_reverse(s: ti.template(), a: ti.template(), f: ti.i32):
+    """dL/dx_p += x_p - x_pu (eq 10)."""
+    for p in range(s.n_particles):
+        a.adj_x[f % 2, p] += s.x[f, p] - s.target_x[p]
+
+
+def seed(s, a, f):
+    """Set dL/d(x, v, C, F) of step f from the loss (v, C, F get zero: eq 44-46)."""
+    zero_step(s, a, f)
+    for g in s.loss_grids:
+        grid_loss_reverse(s, g)
+        splat_reverse(s, g, a, f)
+    if s.has_position_loss:
+        position_loss_reverse(s, a, f)

@@ -1,0 +1,35 @@
+"""Adjoint fields: one step of particle adjoints (two slots, ping-pong) and one grid, never N_t of them."""
+import taichi as ti
+
+
+@ti.data_oriented
+class AdjointState:
+    """dL/d(.) of one State. Particle adjoints of step f live in slot f % 2."""
+
+    def __init__(self, s, dtype):
+        N, n = s.n_particles, s.n_grid
+        self.adj_x = ti.Vector.field(2, dtype, shape=(2, N))  # dL/dx_p
+        self.adj_v = ti.Vector.field(2, dtype, shape=(2, N))  # dL/dv_p
+        self.adj_C = ti.Matrix.field(2, 2, dtype, shape=(2, N))  # dL/dC_p
+        self.adj_F = ti.Matrix.field(2, 2, dtype, shape=(2, N))  # dL/dF_p (= dL/dF_pc, eq 55)
+        self.adj_grid_m = ti.field(dtype, shape=(n, n))  # dL/dm_i
+        self.adj_grid_p = ti.Vector.field(2, dtype, shape=(n, n))  # dL/dp_i
+        self.adj_grid_v = ti.Vector.field(2, dtype, shape=(n, n))  # dL/dv_i
+        self.adj_F_pc = ti.Matrix.field(2, 2, dtype, shape=(s.n_controls, N))  # dL/dF_pc^k, the result
+
+
+@ti.func
+def zero_particle(a: ti.template(), slot, p):
+    a.adj_x[slot, p] = ti.Vector.zero(float, 2)
+    a.adj_v[slot, p] = ti.Vector.zero(float, 2)
+    a.adj_C[slot, p] = ti.Matrix.zero(float, 2, 2)
+    a.adj_F[slot, p] = ti.Matrix.zero(float, 2, 2)
+
+
+@ti.kernel
+def zero_step(s: ti.template(), a: ti.template(), f: ti.i32):
+    """The one place particle adjoints of step f and the grid adjoints are zeroed."""
+    for p in range(s.n_particles):
+        zero_particle(a, f % 2, p)
+    for i, j in ti.ndrange(s.n_grid, s.n_grid):
+        a.adj_grid_v[i, j] = ti.Vector.zero(float, 2)

@@ -1,0 +1,138 @@
+"""Simulation settings (thesis sections 3, 5.3, 6.1) as one frozen, validated dataclass."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+
+BOUNDARIES = ("slip", "sticky")
+DTYPES = ("f32", "f64")
+ARCHS = ("cpu", "gpu", "cuda", "vulkan")
+STENCIL = 4  # the cubic B-spline touches 4 nodes per axis (base = floor(x/dx) - 1)
+
+
+class ConfigError(ValueError):
+    """A setting has a value the simulator cannot use; the message names it and what is expected."""
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """Settings of one simulation. Domain: the unit square; dx = 1 / n_grid.
+
+    n_grid: nodes per axis of the simulation grid.
+    steps: number of time steps N_t simulated by `Simulator.forward`.
+    dt: time step (s).
+    E, nu: Young's modulus and Poisson ratio of the fixed-corotated material (eq 9).
+    density: rest density; particle rest volume V_p^0 = dx^2 / particles_per_cell, mass m_p = density V_p^0.
+    gamma: drag coefficient of eq 16; gamma * dt must stay below 1.
+    gravity: acceleration added to every non-empty node after eq 17.
+    boundary: "slip" zeroes the velocity component into a wall, "sticky" the whole velocity,
+        on nodes closer than `bound` cells to an edge.
+    bound: width of the wall zone in cells.
+    stride: control stride s; control k acts at step k*s, K = ceil(steps / s) controls.
+    particles_per_cell: sets V_p^0 and the image sampling density.
+    dtype: "f64" or "f32" for every field and kernel.
+    arch: "cpu", or "gpu" (Taichi picks CUDA or Vulkan), "cuda", "vulkan".
+    threads: CPU threads (0: all cores).
+    """
+
+    n_grid: int = 64
+    steps: int = 200
+    dt: float = 1e-4
+    E: float = 1e3
+    nu: float = 0.2
+    density: float = 1.0
+    gamma: float = 0.0
+    gravity: tuple = (0.0, -9.8)
+    boundary: str = "slip"
+    bound: int = 3
+    stride: int = 10
+    particles_per_cell: int = 4
+    dtype: str = "f64"
+    arch: str = "cpu"
+    threads: int = 0
+
+    def __post_init__(self):
+        object.__setattr__(self, "gravity", tuple(float(g) for g in self.gravity))
+        _check_int(self, "n_grid", 2 * self.bound + STENCIL if isinstance(self.bound, int) else STENCIL)
+        _check_int(self, "steps", 1)
+        _check_int(self, "stride", 1)
+        _check_int(self, "bound", 0)
+        _check_int(self, "particles_per_cell", 1)
+        _check_int(self, "threads", 0)
+        for name in ("dt", "E", "density"):
+            _check_positive(self, name)
+        if not (isinstance(self.nu, (int, float)) and 0.0 <= self.nu < 0.5):
+            raise ConfigError(f"nu = {self.nu!r}: expected a Poisson ratio in [0, 0.5)")
+        if not (isinstance(self.gamma, (int, float)) and self.gamma >= 0.0 and math.isfinite(self.gamma)):
+            raise ConfigError(f"gamma = {self.gamma!r}: expected a drag coefficient >= 0")
+        if self.gamma * self.dt >= 1.0:
+            raise ConfigError(
+                f"gamma * dt = {self.gamma * self.dt:g}: expected < 1, or the momentum factor (1 - dt gamma) "
+                "of eq 16 flips sign; lower gamma or dt")
+        if len(self.gravity) != 2 or not all(math.isfinite(g) for g in self.gravity):
+            raise ConfigError(f"gravity = {self.gravity!r}: expected two finite numbers")
+        if self.stride > self.steps:
+            raise ConfigError(f"stride = {self.stride}: expected at most steps = {self.steps}")
+        for name, allowed in (("boundary", BOUNDARIES), ("dtype", DTYPES), ("arch", ARCHS)):
+            if getattr(self, name) not in allowed:
+                raise ConfigError(f"{name} = {getattr(self, name)!r}: expected one of {', '.join(allowed)}")
+
+    # Derived quantities, named as in the thesis.
+    @property
+    def dx(self) -> float:
+        return 1.0 / self.n_grid
+
+    @property
+    def inv_dx(self) -> float:
+        return float(self.n_grid)
+
+    @property
+    def vol(self) -> float:
+        """Particle rest volume V_p^0."""
+        return self.dx ** 2 / self.particles_per_cell
+
+    @property
+    def m_p(self) -> float:
+        """Particle mass m_p."""
+        return self.density * self.vol
+
+    @property
+    def mu(self) -> float:
+        return self.E / (2.0 * (1.0 + self.nu))
+
+    @property
+    def lam(self) -> float:
+        return self.E * self.nu / ((1.0 + self.nu) * (1.0 - 2.0 * self.nu))
+
+    @property
+    def n_controls(self) -> int:
+        """K = ceil(N_t / s) control timesteps."""
+        return -(-self.steps // self.stride)
+
+    @property
+    def wave_speed(self) -> float:
+        """Dilatational wave speed sqrt((lambda + 2 mu) / rho)."""
+        return math.sqrt((self.lam + 2.0 * self.mu) / self.density)
+
+    @property
+    def cfl_dt(self) -> float:
+        """Largest stable explicit dt by the CFL condition dt <= dx / wave speed."""
+        return self.dx / self.wave_speed
+
+    def replace(self, **changes) -> "SimConfig":
+        values = {f.name: getattr(self, f.name) for f in fields(self)}
+        values.update(changes)
+        return SimConfig(**values)
+
+
+def _check_int(cfg, name, least):
+    value = getattr(cfg, name)
+    if isinstance(value, bool) or not isinstance(value, int) or value < least:
+        raise ConfigError(f"{name} = {value!r}: expected an integer >= {least}")
+
+
+def _check_positive(cfg, name):
+    value = getattr(cfg, name)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (value > 0 and math.isfinite(value)):
+        raise ConfigError(f"{name} = {value!r}: expected a finite number > 0")
+

@@ -1,0 +1,173 @@
+"""Losses on the final step: position (eq 10), mass (eq 11, 72), log mass, color (eq 12-13).
+
+The loss classes hold user data (numpy); the kernels below evaluate them on a State.
+A target array's shape sets its loss grid's resolution; entry [i, j] is the node at (i dx, j dx).
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+import taichi as ti
+
+from .kernels import stencil, weights
+
+
+class LossError(ValueError):
+    """A loss was given data of the wrong shape or value."""
+
+
+@dataclass(frozen=True)
+class GridSpec:
+    kind: str
+    res: int
+    weight: float
+    target: np.ndarray
+    alpha: np.ndarray | None
+
+
+class PositionLoss:
+    """Eq 10: sum_p 1/2 |x_p - x_pu|^2 against per-particle target positions (N, 2)."""
+
+    grids = ()
+
+    def __init__(self, target_positions):
+        self.target = _array(target_positions, "target_positions")
+        if self.target.ndim != 2 or self.target.shape[1] != 2:
+            raise LossError(f"target_positions: expected shape (N, 2), got {self.target.shape}")
+
+    def check(self, n_particles):
+        if len(self.target) != n_particles:
+            raise LossError(f"target_positions: {len(self.target)} rows, expected one per particle ({n_particles})")
+
+
+class MassLoss:
+    """Eq 11 / 72 on one or more loss grids (thesis 8.1): sum_g w_g sum_i 1/2 alpha_i (m_i - m_iu)^2.
+
+    targets: list of (res, res) target mass grids; weights: one per grid (default 1);
+    alpha: one per grid, a (res, res) penalty array or None (alpha = 1); log: use the log mass loss
+    1/2 (ln(m_i + 1) - ln(m_iu + 1))^2 per node instead of eq 11.
+    """
+
+    def __init__(self, targets, weights=None, alpha=None, log=False):
+        self.grids = _grid_specs("log_mass" if log else "mass", targets, weights, alpha, channels=1)
+
+    def check(self, n_particles):
+        pass
+
+
+class ColorLoss:
+    """Eq 13 on loss grids: sum_g w_g sum_i 1/2 |c_i - c_iu|^2 with c_i = sum_p N m_p c_p (eq 12).
+
+    targets: list of (res, res, 3) target color-mass grids; colors: (N, 3) particle RGB.
+    """
+
+    def __init__(self, targets, colors, weights=None):
+        self.grids = _grid_specs("color", targets, weights, None, channels=3)
+        self.colors = _array(colors, "colors")
+        if self.colors.ndim != 2 or self.colors.shape[1] != 3:
+            raise LossError(f"colors: expected shape (N, 3), got {self.colors.shape}")
+
+    def check(self, n_particles):
+        if len(self.colors) != n_particles:
+            raise LossError(f"colors: {len(self.colors)} rows, expected one per particle ({n_particles})")
+
+
+def _array(a, name):
+    a = np.asarray(a, dtype=np.float64)
+    if not np.all(np.isfinite(a)):
+        raise LossError(f"{name}: holds NaN or Inf")
+    return a
+
+
+def _grid_specs(kind, targets, weights, alpha, channels):
+    if isinstance(targets, np.ndarray):
+        targets = [targets]
+    targets = [_array(t, "targets") for t in targets]
+    if not targets:
+        raise LossError("targets: expected at least one loss grid")
+    weights = [1.0] * len(targets) if weights is None else list(weights)
+    alpha = [None] * len(targets) if alpha is None else list(alpha)
+    if len(weights) != len(targets) or len(alpha) != len(targets):
+        raise LossError(f"weights/alpha: expected one per target grid ({len(targets)})")
+    specs = []
+    for t, w, a in zip(targets, weights, alpha):
+        shape = (t.shape[0], t.shape[0]) + ((3,) if channels == 3 else ())
+        if t.shape != shape or t.shape[0] < 4:
+            raise LossError(f"targets: expected square grids of shape (res, res{', 3' if channels == 3 else ''}) "
+                            f"with res >= 4, got {t.shape}")
+        if not (np.isfinite(w) and w > 0):
+            raise LossError(f"weights: expected numbers > 0, got {w!r}")
+        if a is not None:
+            a = _array(a, "alpha")
+            if a.shape != t.shape[:2] or np.any(a < 0):
+                raise LossError(f"alpha: expected a ({t.shape[0]}, {t.shape[0]}) array >= 0, got shape {a.shape}")
+        specs.append(GridSpec(kind, t.shape[0], float(w), t.reshape(t.shape[0], t.shape[0], channels), a))
+    return tuple(specs)
+
+
+@ti.func
+def splat_value(s: ti.template(), g: ti.template(), p):
+    """What particle p carries to a loss grid: m_p (eq 15) or m_p c_p (eq 12)."""
+    value = ti.Vector.zero(float, g.channels)
+    if ti.static(g.is_color):
+        value = s.m_p * s.color[p]
+    else:
+        value[0] = s.m_p
+    return value
+
+
+@ti.kernel
+def splat(s: ti.template(), g: ti.template(), f: ti.i32):
+    """P2G of particle mass (or color-mass) of step f onto loss grid g, with g's own dx."""
+    for p in range(s.n_particles):
+        base, fx = stencil(s.x[f, p], g.inv_dx)
+        w, _ = weights(fx)
+        value = splat_value(s, g, p)
+        for i, j in ti.static(ti.ndrange(4, 4)):
+            I = base + ti.Vector([i, j])
+            if 0 <= I[0] < g.res and 0 <= I[1] < g.res:  # a loss grid's nodes beyond the domain are dropped
+                g.m[I] += w[i, 0] * w[j, 1] * value
+
+
+@ti.func
+def node_residual(g: ti.template(), I):
+    """m_i - m_iu (eq 41), or ln(m_i + 1) - ln(m_iu + 1) for the log mass loss."""
+    r = g.m[I] - g.target[I]
+    if ti.static(g.kind == "log_mass"):
+        r = ti.log(g.m[I] + 1.0) - ti.log(g.target[I] + 1.0)
+    return r
+
+
+@ti.func
+def node_penalty(g: ti.template(), I):
+    """w_g alpha_i (eq 72; alpha_i = 1 without a penalty grid)."""
+    a = g.weight
+    if ti.static(g.has_alpha):
+        a *= g.alpha[I]
+    return a
+
+
+@ti.kernel
+def grid_loss(s: ti.template(), g: ti.template()):
+    """L += w_g sum_i 1/2 alpha_i |r_i|^2 (eq 11, 13, 72)."""
+    for I in ti.grouped(g.m):
+        s.loss[None] += 0.5 * node_penalty(g, I) * node_residual(g, I).norm_sqr()
+
+
+@ti.kernel
+def position_loss(s: ti.template(), f: ti.i32):
+    """L += sum_p 1/2 |x_p - x_pu|^2 (eq 10)."""
+    for p in range(s.n_particles):
+        s.loss[None] += 0.5 * (s.x[f, p] - s.target_x[p]).norm_sqr()
+
+
+def evaluate(s, f):
+    """Loss of step f: clear, splat and sum every loss grid, then the position term."""
+    s.loss[None] = 0.0
+    for g in s.loss_grids:
+        g.m.fill(0.0)
+        splat(s, g, f)
+        grid_loss(s, g)
+    if s.has_position_loss:
+        position_loss(s, f)
+    return s.loss[None]

@@ -1,0 +1,239 @@
+"""Simulator: orchestrates the forward kernels, the hand-written reverse pass and the Tape oracle."""
+
+import numpy as np
+import taichi as ti
+
+from adjoint.losses import seed
+from adjoint.state import AdjointState
+from adjoint.step import substep_reverse
+
+from . import losses, runtime
+from .grid import grid_op
+from .losses import ColorLoss, PositionLoss
+from .state import FAULT_LEFT_GRID, FAULT_NONE, FAULT_NON_FINITE, State
+from .step import substep
+from .transfer import check_step, g2p, p2g
+
+
+class SimulationError(RuntimeError):
+    """The simulation left the grid or went non-finite; the message names the step and the particle."""
+
+
+@ti.kernel
+def write_step(s: ti.template(), f: ti.i32, x: ti.types.ndarray(), v: ti.types.ndarray(),
+               C: ti.types.ndarray(), F: ti.types.ndarray()):
+    for p in range(s.n_particles):
+        for d in ti.static(range(2)):
+            s.x[f, p][d] = x[p, d]
+            s.v[f, p][d] = v[p, d]
+            for e in ti.static(range(2)):
+                s.C[f, p][d, e] = C[p, d, e]
+                s.F[f, p][d, e] = F[p, d, e]
+
+
+@ti.kernel
+def read_step(s: ti.template(), f: ti.i32, x: ti.types.ndarray(), v: ti.types.ndarray(),
+              C: ti.types.ndarray(), F: ti.types.ndarray()):
+    for p in range(s.n_particles):
+        for d in ti.static(range(2)):
+            x[p, d] = s.x[f, p][d]
+            v[p, d] = s.v[f, p][d]
+            for e in ti.static(range(2)):
+                C[p, d, e] = s.C[f, p][d, e]
+                F[p, d, e] = s.F[f, p][d, e]
+
+
+class Simulator:
+    """A differentiable MLS-MPM simulation of N particles over cfg.steps steps.
+
+    x0: (N, 2) initial positions (velocity 0, F = I, C = 0); loss: PositionLoss, MassLoss, ColorLoss or None.
+    """
+
+    def __init__(self, cfg, x0, loss=None):
+        runtime.ensure(cfg)
+        self.cfg = cfg
+        self.np_dtype = np.float64 if cfg.dtype == "f64" else np.float32
+        x0 = np.asarray(x0, dtype=np.float64)
+        if x0.ndim != 2 or x0.shape[1] != 2 or len(x0) == 0:
+            raise ValueError(f"x0: expected shape (N, 2) with N >= 1, got {x0.shape}")
+        self.n_particles = len(x0)
+        if loss is not None:
+            loss.check(self.n_particles)
+        self.loss = loss
+        self.fields = State(cfg, self.n_particles, loss_grids=loss.grids if loss else (),
+                           position_loss=isinstance(loss, PositionLoss), colors=isinstance(loss, ColorLoss))
+        self._upload_loss(self.fields)
+        self._adjoint = None
+        self._start = 0
+        self.set_initial(x0)
+
+    @property
+    def control_shape(self):
+        return (self.cfg.n_controls, self.n_particles, 2, 2)
+
+    def zero_controls(self):
+        return np.zeros(self.control_shape)
+
+    def set_initial(self, x, v=None, C=None, F=None):
+        """Set the state of step 0 (defaults: v = 0, C = 0, F = I). Used to chain animations (thesis 7.4)."""
+        N = self.n_particles
+        x = self._particle_array(x, "x", (N, 2))
+        v = np.zeros((N, 2)) if v is None else self._particle_array(v, "v", (N, 2))
+        C = np.zeros((N, 2, 2)) if C is None else self._particle_array(C, "C", (N, 2, 2))
+        F = np.tile(np.eye(2), (N, 1, 1)) if F is None else self._particle_array(F, "F", (N, 2, 2))
+        lo, hi = self.cfg.dx, 1.0 - 2.0 * self.cfg.dx  # the 4x4 stencil from floor(x/dx) - 1 stays on the grid
+        outside = np.flatnonzero(np.any((x < lo) | (x >= hi), axis=1))
+        if len(outside):
+            p = outside[0]
+            raise ValueError(f"x: particle {p} at {tuple(np.round(x[p], 6))} lies outside [{lo:g}, {hi:g}) where "
+                             f"its stencil fits on the {self.cfg.n_grid}x{self.cfg.n_grid} grid")
+        write_step(self.fields, 0, *(a.astype(self.np_dtype) for a in (x, v, C, F)))
+
+    def forward(self, controls, start=0):
+        """Run steps start..N_t-1 with controls (K, N, 2, 2) of F_pc and return the loss of step N_t.
+
+        A start > 0 reuses the stored state of step `start` from an earlier forward pass (controls
+        before it must be unchanged); backward() then stops at that step too.
+        """
+        if not 0 <= start < self.cfg.steps:
+            raise ValueError(f"start = {start}: expected a step in [0, {self.cfg.steps})")
+        controls = self._controls(controls)
+        s = self.fields
+        s.F_pc.from_numpy(controls.astype(self.np_dtype))
+        s.clear_faults()
+        for f in range(start, self.cfg.steps):
+            substep(s, f)
+        check_step(s, self.cfg.steps)
+        self._raise_fault(s)
+        self._start = start
+        return losses.evaluate(s, self.cfg.steps) if self.loss is not None else 0.0
+
+    def backward(self):
+        """dL/dF_pc (K, N, 2, 2) of the last forward pass, from the hand-written reverse kernels."""
+        self._require_loss()
+        a = self._adjoint_state()
+        a.adj_F_pc.fill(0.0)
+        s = self.fields
+        seed(s, a, self.cfg.steps)
+        for f in range(self.cfg.steps - 1, self._start - 1, -1):
+            substep_reverse(s, a, f)
+        grad = a.adj_F_pc.to_numpy().astype(np.float64)
+        bad = np.argwhere(~np.isfinite(grad))
+        if len(bad):
+            k, p = bad[0][:2]
+            raise SimulationError(f"backward: dL/dF_pc of control {k}, particle {p} is not finite; likely cause: "
+                                  "a forward state near a singularity (see the README's stability notes)")
+        return grad
+
+    @property
+    def grad_x0(self):
+        """dL/dx of the first simulated step (step `start` of the last forward pass), after backward()."""
+        return self._adjoint.adj_x.to_numpy()[self._start % 2].astype(np.float64)
+
+    @property
+    def grad_v0(self):
+        """dL/dv of the first simulated step, after backward()."""
+        return self._adjoint.adj_v.to_numpy()[self._start % 2].astype(np.float64)
+
+    def final_position_gradient(self):
+        """dL/dx_p of step N_t (eq 42-43), the gradient the `positions` study of thesis 8.1 follows."""
+        self._require_loss()
+        a = self._adjoint_state()
+        seed(self.fields, a, self.cfg.steps)
+        return a.adj_x.to_numpy()[self.cfg.steps % 2].astype(np.float64)
+
+    def state(self, n):
+        """Particle state of stored step n as numpy arrays."""
+        if not 0 <= n <= self.cfg.steps:
+            raise ValueError(f"n = {n}: expected a step in [0, {self.cfg.steps}]")
+        N = self.n_particles
+        out = {"x": np.empty((N, 2)), "v": np.empty((N, 2)), "C": np.empty((N, 2, 2)), "F": np.empty((N, 2, 2))}
+        out = {k: a.astype(self.np_dtype) for k, a in out.items()}
+        read_step(self.fields, n, out["x"], out["v"], out["C"], out["F"])
+        return {k: a.astype(np.float64) for k, a in out.items()}
+
+    def gradient_tape(self, controls, validation=False):
+        """The same gradient as backward(), through ti.ad.Tape on the same forward kernels (a test oracle).
+
+        Allocates a second, grad-enabled copy of the fields on first call.
+        """
+        self._require_loss()
+        controls = self._controls(controls)
+        if getattr(self, "_tape_state", None) is None:
+            self._tape_state = State(self.cfg, self.n_particles, loss_grids=self.loss.grids,
+                                     position_loss=self.fields.has_position_loss,
+                                     colors=self.fields.has_colors, needs_grad=True)
+            self._upload_loss(self._tape_state)
+        t = self._tape_state
+        init = self.state(0)  # the method, not the fields
+        write_step(t, 0, *(init[k].astype(self.np_dtype) for k in ("x", "v", "C", "F")))
+        t.F_pc.from_numpy(controls.astype(self.np_dtype))
+        for field in (t.grid_m, t.grid_p, t.grid_v, t.loss, *(g.m for g in t.loss_grids)):
+            field.fill(0.0)
+        T = self.cfg.steps
+        with ti.ad.Tape(loss=t.loss, validation=validation):
+            for f in range(T):
+                p2g(t, f)
+                grid_op(t, f)
+                g2p(t, f)
+            for g in t.loss_grids:
+                losses.splat(t, g, T)
+                losses.grid_loss(t, g)
+            if t.has_position_loss:
+                losses.position_loss(t, T)
+        return t.F_pc.grad.to_numpy().astype(np.float64)
+
+    # helpers
+    def _upload_loss(self, s):
+        if self.loss is None:
+            return
+        for g, spec in zip(s.loss_grids, self.loss.grids):
+            g.target.from_numpy(spec.target.astype(self.np_dtype))
+            if spec.alpha is not None:
+                g.alpha.from_numpy(spec.alpha.astype(self.np_dtype))
+        if isinstance(self.loss, PositionLoss):
+            s.target_x.from_numpy(self.loss.target.astype(self.np_dtype))
+        if isinstance(self.loss, ColorLoss):
+            s.color.from_numpy(self.loss.colors.astype(self.np_dtype))
+
+    def _adjoint_state(self):
+        if self._adjoint is None:
+            self._adjoint = AdjointState(self.fields, runtime.real(self.cfg.dtype))
+        return self._adjoint
+
+    def _require_loss(self):
+        if self.loss is None:
+            raise ValueError("this Simulator has no loss: pass loss=PositionLoss/MassLoss/ColorLoss to differentiate")
+
+    def _particle_array(self, a, name, shape):
+        a = np.asarray(a, dtype=np.float64)
+        if a.shape != shape:
+            raise ValueError(f"{name}: expected shape {shape}, got {a.shape}")
+        bad = np.argwhere(~np.isfinite(a))
+        if len(bad):
+            raise ValueError(f"{name}: particle {bad[0][0]} holds NaN or Inf")
+        return a
+
+    def _controls(self, controls):
+        controls = np.asarray(controls, dtype=np.float64)
+        if controls.shape != self.control_shape:
+            raise ValueError(f"controls: expected shape {self.control_shape} (K, N, 2, 2), got {controls.shape}")
+        bad = np.argwhere(~np.isfinite(controls))
+        if len(bad):
+            k, p = bad[0][:2]
+            raise ValueError(f"controls: control {k} (step {k * self.cfg.stride}), particle {p} holds NaN or Inf")
+        return controls
+
+    def _raise_fault(self, s):
+        fault = s.fault.to_numpy()
+        causes = {
+            FAULT_LEFT_GRID: "left the simulation grid (its 4x4 stencil would index outside it); likely cause: "
+                             "controls or velocities too large for dt, or walls (bound) too thin",
+            FAULT_NON_FINITE: "has a non-finite state (NaN or Inf); likely cause: dt above the CFL limit "
+                              f"{self.cfg.cfl_dt:.3g} for this E, nu and density, or a singular control",
+        }
+        hits = [(int(fault[k]) // self.n_particles, k, int(fault[k]) % self.n_particles)
+                for k in causes if fault[k] != FAULT_NONE]
+        if hits:
+            f, k, p = min(hits)
+            raise SimulationError(f"step {f}: particle {p} {causes[k]}")

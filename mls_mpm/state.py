@@ -1,0 +1,104 @@
+"""Preallocated fields of one simulation: every step's particle and grid state (STYLE 2)."""
+
+import numpy as np
+import taichi as ti
+
+from .runtime import real
+
+FAULT_NONE = 2 ** 62  # fault[k] holds min(f * N + p) over faulty (step f, particle p), or this
+FAULT_LEFT_GRID = 0  # a particle's 4x4 stencil left the grid
+FAULT_NON_FINITE = 1  # a particle's new state holds NaN or Inf
+
+
+@ti.data_oriented
+class LossGrid:
+    """One loss grid of its own resolution (thesis 8.1): its mass (and color-mass) and target.
+
+    kind: "mass" (eq 11 / 72), "log_mass" (1/2 (ln(m+1) - ln(m_u+1))^2) or "color" (eq 13).
+    Entry [i, j] is the node at (i dx, j dx) with dx = 1 / res.
+    """
+
+    def __init__(self, dtype, kind, res, weight, has_alpha, needs_grad=False, needs_adjoint=False):
+        self.kind = kind
+        self.res = res
+        self.dx = 1.0 / res
+        self.inv_dx = float(res)
+        self.weight = float(weight)
+        self.has_alpha = has_alpha
+        self.is_color = kind == "color"
+        channels = 3 if self.is_color else 1
+        self.channels = channels
+        # m: node mass (color-mass c_i for color grids, eq 12); target: m_iu or c_iu
+        self.m = ti.Vector.field(channels, dtype, shape=(res, res), needs_grad=needs_grad)
+        self.target = ti.Vector.field(channels, dtype, shape=(res, res))
+        if has_alpha:
+            self.alpha = ti.field(dtype, shape=(res, res))  # penalty alpha_i of eq 72
+        if needs_adjoint:
+            self.adj_m = ti.Vector.field(channels, dtype, shape=(res, res))  # dL/dm_i (eq 41)
+
+
+@ti.data_oriented
+class State:
+    """Fields of one simulation; per-step fields are shaped (steps + 1, ...) or (steps, ...) for the grid.
+
+    Scalars stored here (dx, dt, mu, ...) are compile-time constants of the kernels that take the state.
+    """
+
+    def __init__(self, cfg, n_particles, loss_grids=(), position_loss=False, colors=False, needs_grad=False):
+        dt_ = real(cfg.dtype)
+        T = cfg.steps
+        self.n_particles = n_particles
+        self.steps = T
+        self.n_grid = cfg.n_grid
+        self.dx = cfg.dx
+        self.inv_dx = cfg.inv_dx
+        self.dt = cfg.dt
+        self.vol = cfg.vol
+        self.m_p = cfg.m_p
+        self.mu = cfg.mu
+        self.lam = cfg.lam
+        self.gamma = cfg.gamma
+        self.gravity = cfg.gravity
+        self.sticky = cfg.boundary == "sticky"
+        self.bound = cfg.bound
+        self.stride = cfg.stride
+        self.n_controls = cfg.n_controls
+        self.m_eps = 1e-10 * cfg.m_p  # grid nodes lighter than this are empty (eq 17 guard)
+        g = needs_grad
+        N, n = n_particles, cfg.n_grid
+        self.x = ti.Vector.field(2, dt_, shape=(T + 1, N), needs_grad=g)  # position x_p^n
+        self.v = ti.Vector.field(2, dt_, shape=(T + 1, N), needs_grad=g)  # velocity v_p^n
+        self.C = ti.Matrix.field(2, 2, dt_, shape=(T + 1, N), needs_grad=g)  # affine velocity C_p^n (eq 19)
+        self.F = ti.Matrix.field(2, 2, dt_, shape=(T + 1, N), needs_grad=g)  # deformation gradient F_p^n
+        self.F_pc = ti.Matrix.field(2, 2, dt_, shape=(self.n_controls, N), needs_grad=g)  # control F_pc (eq 8)
+        # grid state of steps 0..T-1 (step T has no grid update)
+        self.grid_m = ti.field(dt_, shape=(T, n, n), needs_grad=g)  # node mass m_i^n (eq 15)
+        self.grid_p = ti.Vector.field(2, dt_, shape=(T, n, n), needs_grad=g)  # node momentum p_i^n (eq 16)
+        self.grid_v = ti.Vector.field(2, dt_, shape=(T, n, n), needs_grad=g)  # node velocity v_i^n (eq 17)
+        self.loss = ti.field(dt_, shape=(), needs_grad=g)
+        self.fault = ti.field(ti.i64, shape=2)  # first faulty f * N + p per FAULT_* kind
+        self.has_colors = colors
+        if colors:
+            self.color = ti.Vector.field(3, dt_, shape=N)  # particle RGB c_p (eq 12)
+        self.has_position_loss = position_loss
+        if position_loss:
+            self.target_x = ti.Vector.field(2, dt_, shape=N)  # x_pu of eq 10
+        self.loss_grids = [
+            LossGrid(dt_, lg.kind, lg.res, lg.weight, lg.alpha is not None, needs_grad=g, needs_adjoint=not g)
+            for lg in loss_grids
+        ]
+
+    def clear_faults(self):
+        self.fault.from_numpy(np.full(2, FAULT_NONE, dtype=np.int64))
+
+    def nbytes(self):
+        """Bytes held by this state's fields (a close estimate of its memory)."""
+        return estimate_bytes(self.n_particles, self.steps, self.n_grid, self.n_controls,
+                              8 if self.x.dtype == ti.f64 else 4)
+
+
+def estimate_bytes(n_particles, steps, n_grid, n_controls, word):
+    """Bytes of the per-step fields of a State: (x, v, C, F) per particle step and (m, p, v) per grid step."""
+    particle = (steps + 1) * n_particles * (2 + 2 + 4 + 4) + n_controls * n_particles * 4
+    grid = steps * n_grid * n_grid * (1 + 2 + 2)
+    return (particle + grid) * word

@@ -1,0 +1,108 @@
+"""Particle-to-grid (eq 14-16) and grid-to-particle (eq 18-21) transfers for one step f.
+
+A particle whose stencil leaves the grid is skipped (never indexed outside it) and reported by check_particle.
+"""
+import taichi as ti
+
+from .kernels import inside, stencil, weights
+from .material import stress
+from .state import FAULT_LEFT_GRID, FAULT_NON_FINITE, FAULT_NONE
+
+
+@ti.func
+def record_fault(s: ti.template(), kind: ti.template(), f, p):
+    """Keep a faulty (step, particle) as f * N + p, the earliest step that had one; the simulator reads it.
+
+    A plain guarded store, not atomic_min, so that Taichi's autodiff (the test oracle) accepts the kernel.
+    """
+    if s.fault[kind] == ti.i64(FAULT_NONE):
+        s.fault[kind] = ti.cast(f, ti.i64) * s.n_particles + p
+
+
+@ti.func
+def control_sum(s: ti.template(), f, p):
+    """F_p^n + F_pc^n (eq 8, 14): control k acts at step k * stride only."""
+    Fs = s.F[f, p]
+    if f % s.stride == 0:
+        Fs += s.F_pc[f // s.stride, p]
+    return Fs
+
+
+@ti.func
+def affine_momentum(s: ti.template(), f, p, Fs):
+    """G_p^n = -3/dx^2 dt V_p^0 P(F + F_pc) (F + F_pc)^T + m_p C_p^n (eq 61)."""
+    P = stress(Fs, s.mu, s.lam)
+    return -3.0 * s.inv_dx * s.inv_dx * s.dt * s.vol * P @ Fs.transpose() + s.m_p * s.C[f, p]
+
+
+@ti.func
+def p2g_particle(s: ti.template(), f, p):
+    """Scatter particle p of step f: m_i += N m_p (eq 15), p_i += N [m_p v_p (1 - dt gamma) + G_p dpos] (eq 16)."""
+    base, fx = stencil(s.x[f, p], s.inv_dx)
+    if inside(base, s.n_grid):
+        w, _ = weights(fx)
+        G = affine_momentum(s, f, p, control_sum(s, f, p))
+        mv = s.m_p * (1.0 - s.dt * s.gamma) * s.v[f, p]
+        for i, j in ti.static(ti.ndrange(4, 4)):
+            N = w[i, 0] * w[j, 1]
+            dpos = (ti.Vector([i, j]) - fx) * s.dx  # x_i - x_p
+            s.grid_m[f, base[0] + i, base[1] + j] += N * s.m_p
+            s.grid_p[f, base[0] + i, base[1] + j] += N * (mv + G @ dpos)
+
+
+@ti.func
+def g2p_particle(s: ti.template(), f, p):
+    """Gather particle p of step f + 1 from the grid velocities of step f (eq 18-21)."""
+    x = s.x[f, p]
+    base, fx = stencil(x, s.inv_dx)
+    if inside(base, s.n_grid):
+        w, _ = weights(fx)
+        v_new = ti.Vector.zero(float, 2)
+        C_new = ti.Matrix.zero(float, 2, 2)
+        for i, j in ti.static(ti.ndrange(4, 4)):
+            N = w[i, 0] * w[j, 1]
+            dpos = (ti.Vector([i, j]) - fx) * s.dx
+            v_i = s.grid_v[f, base[0] + i, base[1] + j]
+            v_new += N * v_i  # eq 18
+            C_new += 3.0 * s.inv_dx * s.inv_dx * N * v_i.outer_product(dpos)  # eq 19
+        F_new = (ti.Matrix.identity(float, 2) + s.dt * C_new) @ control_sum(s, f, p)  # eq 20
+        x_new = x + s.dt * v_new  # eq 21
+        s.v[f + 1, p] = v_new
+        s.C[f + 1, p] = C_new
+        s.F[f + 1, p] = F_new
+        s.x[f + 1, p] = x_new
+
+
+@ti.func
+def check_particle(s: ti.template(), f, p):
+    """Record particle p of step f if its stencil leaves the grid or its state is not finite.
+
+    Kept apart from p2g/g2p (which skip such a particle) so that those stay differentiable by Taichi.
+    """
+    total = s.x[f, p].sum() + s.v[f, p].sum() + s.C[f, p].sum() + s.F[f, p].sum()
+    if total - total != 0.0:  # NaN or Inf anywhere (NaN != 0 holds; needs fast_math off)
+        record_fault(s, FAULT_NON_FINITE, f, p)
+    else:
+        base, _ = stencil(s.x[f, p], s.inv_dx)
+        if not inside(base, s.n_grid):
+            record_fault(s, FAULT_LEFT_GRID, f, p)
+
+
+@ti.kernel
+def p2g(s: ti.template(), f: ti.i32):
+    """P2G of step f into grid f (the grid of step f must be zero)."""
+    for p in range(s.n_particles):
+        p2g_particle(s, f, p)
+
+
+@ti.kernel
+def g2p(s: ti.template(), f: ti.i32):
+    """G2P: particle state f + 1 from particle state f and grid velocity f."""
+    for p in range(s.n_particles):
+        g2p_particle(s, f, p)
+
+
+@ti.kernel
+def check_step(s: ti.template(), f: ti.i32):
+    for p in range(s.n_particles):
+        check_particle(s, f, p)

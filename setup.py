@@ -1,0 +1,12 @@
+from setuptools import setup
+
+setup(
+    name="mls-mpm",
+    version="0.1.0",
+    description="Differentiable 2D MLS-MPM with hand-written reverse kernels for shape-morphing animation",
+    python_requires=">=3.10",
+    packages=["mls_mpm", "adjoint"],
+    install_requires=["taichi>=1.7,<1.8", "numpy", "pillow", "scipy", "tomli; python_version<'3.11'"],
+    extras_require={"test": ["pytest"]},
+    entry_points={"console_scripts": ["mls-mpm = mls_mpm.cli:main"]},
+)
