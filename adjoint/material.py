@@ -1,11 +1,7 @@
 """dP(F) : G for fixed-corotated stress (eq 57's d^2 Psi / dF dF : dL/dP), in closed form."""
 import taichi as ti
 
-from mls_mpm.material import cofactor
-
-# Where (F00 + F11)^2 + (F10 - F01)^2 falls below this, the polar angle's derivative is singular
-# (F symmetric with zero trace); the rotation term's derivative is then taken as zero.
-ROTATION_EPS = 1e-20
+from mls_mpm.material import ROTATION_EPS, cofactor, polar_rotation
 
 
 @ti.func
@@ -20,14 +16,14 @@ def stress_reverse(F, G, mu, lam):
     a = F[0, 0] + F[1, 1]
     b = F[1, 0] - F[0, 1]
     r2 = a * a + b * b
-    theta = ti.atan2(b, a)
-    c = ti.cos(theta)
-    s = ti.sin(theta)
+    R = polar_rotation(F)
+    c = R[0, 0]
+    s = R[1, 0]
     # dR/dtheta = [[-s, -c], [c, -s]]
     g_theta = -2.0 * mu * (-s * G[0, 0] - c * G[0, 1] + c * G[1, 0] - s * G[1, 1])
     k_a = 0.0 * r2
     k_b = 0.0 * r2
-    if r2 > ROTATION_EPS:  # guard: singular polar angle (see ROTATION_EPS)
+    if r2 > ROTATION_EPS:  # guard: singular polar angle, the rotation term's derivative is taken as zero
         k_a = -g_theta * b / r2  # dL/da
         k_b = g_theta * a / r2  # dL/db
     cF = cofactor(F)

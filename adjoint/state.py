@@ -28,8 +28,9 @@ def zero_particle(a: ti.template(), slot, p):
 
 @ti.kernel
 def zero_step(s: ti.template(), a: ti.template(), f: ti.i32):
-    """The one place particle adjoints of step f and the grid adjoints are zeroed."""
+    """Zero both particle slots and the grid adjoints before a reverse pass (later steps zero what they consume)."""
     for p in range(s.n_particles):
-        zero_particle(a, f % 2, p)
+        zero_particle(a, 0, p)
+        zero_particle(a, 1, p)
     for i, j in ti.ndrange(s.n_grid, s.n_grid):
         a.adj_grid_v[i, j] = ti.Vector.zero(float, 2)

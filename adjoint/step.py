@@ -1,4 +1,8 @@
-"""Reverse of one fused step (twin of mls_mpm.step.substep): the forward's loops in reverse order."""
+"""Reverse time stepping (twin of mls_mpm.step): the forward's loops in reverse order, in the same two schedules.
+
+Each reverse step consumes the adjoints of step f + 1 and zeroes them after use (particle slot (f+1) % 2 and
+the grid velocity adjoint), so the next reverse step finds its accumulators zero without an extra loop.
+"""
 import taichi as ti
 
 from .grid import grid_op_reverse_node
@@ -6,16 +10,39 @@ from .state import zero_particle
 from .transfer import g2p_reverse_particle, p2g_reverse_particle
 
 
+@ti.func
+def grid_node_reverse_and_clear(s: ti.template(), a: ti.template(), f, i, j):
+    grid_op_reverse_node(s, a, f, i, j)
+    a.adj_grid_v[i, j] = ti.Vector.zero(float, 2)
+
+
+@ti.func
+def p2g_reverse_and_clear(s: ti.template(), a: ti.template(), f, p):
+    p2g_reverse_particle(s, a, f, p)
+    zero_particle(a, (f + 1) % 2, p)
+
+
 @ti.kernel
 def substep_reverse(s: ti.template(), a: ti.template(), f: ti.i32):
-    """Zero step f's adjoints, then reverse G2P, reverse grid operations, reverse P2G."""
-    for p in range(s.n_particles):
-        zero_particle(a, f % 2, p)
-    for i, j in ti.ndrange(s.n_grid, s.n_grid):
-        a.adj_grid_v[i, j] = ti.Vector.zero(float, 2)
+    """Reverse G2P, reverse grid operations, reverse P2G of step f (reverse G2P scatters: serial on a CPU)."""
+    ti.loop_config(serialize=s.serial_scatter)
     for p in range(s.n_particles):
         g2p_reverse_particle(s, a, f, p)
     for i, j in ti.ndrange(s.n_grid, s.n_grid):
-        grid_op_reverse_node(s, a, f, i, j)
+        grid_node_reverse_and_clear(s, a, f, i, j)
     for p in range(s.n_particles):
-        p2g_reverse_particle(s, a, f, p)
+        p2g_reverse_and_clear(s, a, f, p)
+
+
+@ti.kernel
+def run_reverse_serial(s: ti.template(), a: ti.template(), f0: ti.i32, f1: ti.i32):
+    """Reverse steps f1-1 down to f0 in one launch, serially (the same bodies as substep_reverse)."""
+    ti.loop_config(serialize=True)
+    for k in range(f1 - f0):
+        f = f1 - 1 - k
+        for p in range(s.n_particles):
+            g2p_reverse_particle(s, a, f, p)
+        for i, j in ti.ndrange(s.n_grid, s.n_grid):
+            grid_node_reverse_and_clear(s, a, f, i, j)
+        for p in range(s.n_particles):
+            p2g_reverse_and_clear(s, a, f, p)

@@ -30,12 +30,15 @@ def g2p_reverse_particle(s: ti.template(), a: ti.template(), f, p):
         g_C = a.adj_C[src, p] + s.dt * g_F @ Fs.transpose()
         k = 3.0 * s.inv_dx * s.inv_dx
         adj_x = g_x
+        sum_v = ti.Vector.zero(float, 2)  # sum_i N v_i
         for i, j in ti.static(ti.ndrange(4, 4)):
             N, dN = node_weight(w, dw, ti.Vector([i, j]), s.inv_dx)
             dpos = (ti.Vector([i, j]) - fx) * s.dx
             v_i = s.grid_v[f, base[0] + i, base[1] + j]
-            a.adj_grid_v[base[0] + i, base[1] + j] += N * g_v + k * N * g_C @ dpos
-            adj_x += dN * (v_i.dot(g_v) + k * (g_C * v_i.outer_product(dpos)).sum()) - k * N * g_C.transpose() @ v_i
+            a.adj_grid_v[base[0] + i, base[1] + j] += N * (g_v + k * g_C @ dpos)
+            adj_x += dN * v_i.dot(g_v + k * g_C @ dpos)  # g_C : v_i dpos^T = v_i . g_C dpos
+            sum_v += N * v_i
+        adj_x -= k * g_C.transpose() @ sum_v
         a.adj_x[dst, p] += adj_x
         a.adj_F[dst, p] += (ti.Matrix.identity(float, 2) + s.dt * s.C[f + 1, p]).transpose() @ g_F
 
@@ -61,16 +64,18 @@ def p2g_reverse_particle(s: ti.template(), a: ti.template(), f, p):
         drag = s.m_p * (1.0 - s.dt * s.gamma)
         mv = drag * s.v[f, p]
         adj_x = ti.Vector.zero(float, 2)
-        adj_v = ti.Vector.zero(float, 2)
+        sum_g_p = ti.Vector.zero(float, 2)  # sum_i N dL/dp_i
         adj_G = ti.Matrix.zero(float, 2, 2)
         for i, j in ti.static(ti.ndrange(4, 4)):
             N, dN = node_weight(w, dw, ti.Vector([i, j]), s.inv_dx)
             dpos = (ti.Vector([i, j]) - fx) * s.dx
             g_m = a.adj_grid_m[base[0] + i, base[1] + j]
             g_p = a.adj_grid_p[base[0] + i, base[1] + j]
-            adj_x += dN * (s.m_p * g_m + g_p.dot(mv + G @ dpos)) - N * G.transpose() @ g_p
-            adj_v += N * drag * g_p
+            adj_x += dN * (s.m_p * g_m + g_p.dot(mv + G @ dpos))
+            sum_g_p += N * g_p
             adj_G += N * g_p.outer_product(dpos)
+        adj_x -= G.transpose() @ sum_g_p
+        adj_v = drag * sum_g_p
         adj_A = -3.0 * s.inv_dx * s.inv_dx * s.dt * s.vol * adj_G
         P = stress(Fs, s.mu, s.lam)
         adj_Fs = adj_A.transpose() @ P + stress_reverse(Fs, adj_A @ Fs, s.mu, s.lam)

@@ -7,6 +7,8 @@ from dataclasses import dataclass, fields
 BOUNDARIES = ("slip", "sticky")
 DTYPES = ("f32", "f64")
 ARCHS = ("cpu", "gpu", "cuda", "vulkan")
+SCHEDULES = ("auto", "serial", "parallel")
+SERIAL_BELOW = 4000  # particles + grid nodes under which "auto" runs serially on a CPU
 STENCIL = 4  # the cubic B-spline touches 4 nodes per axis (base = floor(x/dx) - 1)
 
 
@@ -33,6 +35,9 @@ class SimConfig:
     dtype: "f64" or "f32" for every field and kernel.
     arch: "cpu", or "gpu" (Taichi picks CUDA or Vulkan), "cuda", "vulkan".
     threads: CPU threads (0: all cores).
+    schedule: "parallel" launches one kernel per step with parallel loops; "serial" runs all steps in one
+        serial launch (faster for small scenes on a CPU, where launch cost dominates); "auto" picks
+        serial on a CPU below SERIAL_BELOW particle-node units (see BENCHMARKS.md), else parallel.
     """
 
     n_grid: int = 64
@@ -50,6 +55,7 @@ class SimConfig:
     dtype: str = "f64"
     arch: str = "cpu"
     threads: int = 0
+    schedule: str = "auto"
 
     def __post_init__(self):
         object.__setattr__(self, "gravity", tuple(float(g) for g in self.gravity))
@@ -73,7 +79,8 @@ class SimConfig:
             raise ConfigError(f"gravity = {self.gravity!r}: expected two finite numbers")
         if self.stride > self.steps:
             raise ConfigError(f"stride = {self.stride}: expected at most steps = {self.steps}")
-        for name, allowed in (("boundary", BOUNDARIES), ("dtype", DTYPES), ("arch", ARCHS)):
+        for name, allowed in (("boundary", BOUNDARIES), ("dtype", DTYPES), ("arch", ARCHS),
+                                ("schedule", SCHEDULES)):
             if getattr(self, name) not in allowed:
                 raise ConfigError(f"{name} = {getattr(self, name)!r}: expected one of {', '.join(allowed)}")
 
@@ -118,6 +125,12 @@ class SimConfig:
     def cfl_dt(self) -> float:
         """Largest stable explicit dt by the CFL condition dt <= dx / wave speed."""
         return self.dx / self.wave_speed
+
+    def serial(self, n_particles) -> bool:
+        """Whether stepping runs serially in one launch (see `schedule`)."""
+        if self.schedule != "auto":
+            return self.schedule == "serial"
+        return self.arch == "cpu" and n_particles + self.n_grid ** 2 < SERIAL_BELOW
 
     def replace(self, **changes) -> "SimConfig":
         values = {f.name: getattr(self, f.name) for f in fields(self)}

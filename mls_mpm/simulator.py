@@ -5,13 +5,13 @@ import taichi as ti
 
 from adjoint.losses import seed
 from adjoint.state import AdjointState
-from adjoint.step import substep_reverse
+from adjoint.step import run_reverse_serial, substep_reverse
 
 from . import losses, runtime
 from .grid import grid_op
 from .losses import ColorLoss, PositionLoss
 from .state import FAULT_LEFT_GRID, FAULT_NONE, FAULT_NON_FINITE, State
-from .step import substep
+from .step import clear_grid, run_serial, substep
 from .transfer import check_step, g2p, p2g
 
 
@@ -65,6 +65,7 @@ class Simulator:
         self._upload_loss(self.fields)
         self._adjoint = None
         self._start = 0
+        self._serial = cfg.serial(self.n_particles)
         self.set_initial(x0)
 
     @property
@@ -101,8 +102,12 @@ class Simulator:
         s = self.fields
         s.F_pc.from_numpy(controls.astype(self.np_dtype))
         s.clear_faults()
-        for f in range(start, self.cfg.steps):
-            substep(s, f)
+        clear_grid(s, start)
+        if self._serial:
+            run_serial(s, start, self.cfg.steps)
+        else:
+            for f in range(start, self.cfg.steps):
+                substep(s, f)
         check_step(s, self.cfg.steps)
         self._raise_fault(s)
         self._start = start
@@ -115,8 +120,11 @@ class Simulator:
         a.adj_F_pc.fill(0.0)
         s = self.fields
         seed(s, a, self.cfg.steps)
-        for f in range(self.cfg.steps - 1, self._start - 1, -1):
-            substep_reverse(s, a, f)
+        if self._serial:
+            run_reverse_serial(s, a, self._start, self.cfg.steps)
+        else:
+            for f in range(self.cfg.steps - 1, self._start - 1, -1):
+                substep_reverse(s, a, f)
         grad = a.adj_F_pc.to_numpy().astype(np.float64)
         bad = np.argwhere(~np.isfinite(grad))
         if len(bad):

@@ -63,6 +63,7 @@ class State:
         self.bound = cfg.bound
         self.stride = cfg.stride
         self.n_controls = cfg.n_controls
+        self.serial_scatter = cfg.arch == "cpu"  # see mls_mpm.step.substep
         self.m_eps = 1e-10 * cfg.m_p  # grid nodes lighter than this are empty (eq 17 guard)
         g = needs_grad
         N, n = n_particles, cfg.n_grid

@@ -1,21 +1,62 @@
-"""One forward step f -> f + 1 fused into a single kernel launch (launch cost dominates small scenes)."""
+"""Forward time stepping, f -> f + 1, in two schedules that share the same per-particle/per-node bodies.
+
+Launch cost dominates small scenes (~50 us per parallel loop on 2 CPU threads), so:
+- `substep(s, f)`: one launch per step, three loops (large scenes, GPUs);
+- `run_serial(s, f0, f1)`: one launch for a whole range of steps, every loop serial (small scenes on a CPU).
+Grid f + 1 is cleared by step f's grid loop, after nothing reads it, so each step needs no extra clear loop.
+"""
 import taichi as ti
 
 from .grid import grid_op_node
 from .transfer import check_particle, g2p_particle, p2g_particle
 
 
+@ti.func
+def clear_node(s: ti.template(), f, i, j):
+    s.grid_m[f, i, j] = 0.0
+    s.grid_p[f, i, j] = ti.Vector.zero(float, 2)
+
+
+@ti.kernel
+def clear_grid(s: ti.template(), f: ti.i32):
+    """Zero grid f before the first step of a forward pass."""
+    for i, j in ti.ndrange(s.n_grid, s.n_grid):
+        clear_node(s, f, i, j)
+
+
+@ti.func
+def grid_node_and_clear_next(s: ti.template(), f, i, j):
+    grid_op_node(s, f, i, j)
+    if f + 1 < s.steps:
+        clear_node(s, f + 1, i, j)
+
+
 @ti.kernel
 def substep(s: ti.template(), f: ti.i32):
-    """Check step f, clear grid f, then P2G (eq 14-16), grid operations (eq 17 + gravity + walls), G2P (eq 18-21)."""
+    """Check and P2G (eq 14-16), grid operations (eq 17 + gravity + walls), G2P (eq 18-21) of step f.
+
+    On a CPU the scatter loop (P2G's atomic adds) runs serially, where its atomics become plain adds; that is
+    faster than parallel compare-and-swap on 2 threads. Gather loops run in parallel.
+    """
+    ti.loop_config(serialize=s.serial_scatter)
     for p in range(s.n_particles):
         check_particle(s, f, p)
-    for i, j in ti.ndrange(s.n_grid, s.n_grid):
-        s.grid_m[f, i, j] = 0.0
-        s.grid_p[f, i, j] = ti.Vector.zero(float, 2)
-    for p in range(s.n_particles):
         p2g_particle(s, f, p)
     for i, j in ti.ndrange(s.n_grid, s.n_grid):
-        grid_op_node(s, f, i, j)
+        grid_node_and_clear_next(s, f, i, j)
     for p in range(s.n_particles):
         g2p_particle(s, f, p)
+
+
+@ti.kernel
+def run_serial(s: ti.template(), f0: ti.i32, f1: ti.i32):
+    """Steps f0..f1-1 in one launch, serially (the same bodies as substep)."""
+    ti.loop_config(serialize=True)
+    for f in range(f0, f1):
+        for p in range(s.n_particles):
+            check_particle(s, f, p)
+            p2g_particle(s, f, p)
+        for i, j in ti.ndrange(s.n_grid, s.n_grid):
+            grid_node_and_clear_next(s, f, i, j)
+        for p in range(s.n_particles):
+            g2p_particle(s, f, p)

@@ -1,0 +1,213 @@
+"""Writing rendered frames to disk: numbered PNGs, an animated GIF, comparison sheets and a loss plot (Pillow only)."""
+from __future__ import annotations
+
+import math
+import os
+import re
+from pathlib import Path
+
+import numpy as np
+from PIL import Image, ImageDraw, ImageFont
+
+FRAME_NAME = "frame_{:05d}.png"
+FRAME_RE = re.compile(r"^frame_(\d{5,})\.png$")
+
+
+def frame_paths(frames_dir):
+    """The frame files of a directory, ordered by their number."""
+    frames_dir = Path(frames_dir)
+    if not frames_dir.is_dir():
+        return []
+    found = [(int(m.group(1)), p) for p in frames_dir.iterdir() if (m := FRAME_RE.match(p.name))]
+    return [p for _, p in sorted(found)]
+
+
+def save_png(image, path):
+    """Write a uint8 (H, W, 3) array to path atomically: a temporary file in the same folder, then os.replace."""
+    path = Path(path)
+    image = _as_u8(image)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        Image.fromarray(image, "RGB").save(tmp, format="PNG")
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return path
+
+
+class FrameWriter:
+    """Writes out_dir/frames/frame_00000.png, frame_00001.png, ... one frame at a time, numbered without gaps.
+
+    clear=True removes frame files left by an earlier run first; clear=False continues after the last one
+    (to extend an animation, thesis 7.4). Each frame is written atomically; nothing is kept in memory.
+    """
+
+    def __init__(self, out_dir, clear=True):
+        self.frames_dir = Path(out_dir) / "frames"
+        self.frames_dir.mkdir(parents=True, exist_ok=True)
+        existing = frame_paths(self.frames_dir)
+        if clear:
+            for p in existing:
+                p.unlink()
+            self.count = 0
+        else:
+            self.count = int(FRAME_RE.match(existing[-1].name).group(1)) + 1 if existing else 0
+
+    def write(self, image):
+        """Write the next frame and return its path."""
+        path = save_png(image, self.frames_dir / FRAME_NAME.format(self.count))
+        self.count += 1
+        return path
+
+
+def write_gif(frames_dir, path, max_size=256, fps=20):
+    """Build an animated GIF from the frames of frames_dir, read back one at a time and downscaled so that
+    neither side exceeds max_size. Only the downscaled, palettised frames are held (Pillow's GIF writer
+    keeps them). Returns the number of frames written."""
+    paths = frame_paths(frames_dir)
+    if not paths:
+        raise FileNotFoundError(f"{frames_dir}: no frame_NNNNN.png files to animate")
+    if max_size < 1 or fps <= 0:
+        raise ValueError(f"max_size = {max_size}, fps = {fps}: expected max_size >= 1 and fps > 0")
+
+    def frames():
+        for p in paths:
+            with Image.open(p) as im:
+                im = im.convert("RGB")
+                scale = min(1.0, max_size / max(im.size))
+                if scale < 1.0:
+                    im = im.resize((max(1, round(im.width * scale)), max(1, round(im.height * scale))),
+                                   Image.Resampling.LANCZOS)
+                yield im.quantize(colors=255, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE)
+
+    it = frames()
+    first = next(it)
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        first.save(tmp, format="GIF", save_all=True, append_images=it, duration=round(1000 / fps), loop=0,
+                   optimize=False, disposal=1)
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return len(paths)
+
+
+def sheet(images, labels, gap=8, label_height=20, background=255):
+    """Images side by side (e.g. initial | middle | final | target), each with its label centered above it
+    in Pillow's default font. Images of different heights are top-aligned. Returns uint8 (H, W, 3)."""
+    images = [_as_u8(im) for im in images]
+    labels = [str(s) for s in labels]
+    if not images or len(images) != len(labels):
+        raise ValueError(f"sheet: expected one label per image and at least one image, got {len(images)} images "
+                         f"and {len(labels)} labels")
+    height = label_height + max(im.shape[0] for im in images)
+    width = sum(im.shape[1] for im in images) + gap * (len(images) - 1)
+    canvas = Image.new("RGB", (width, height), (background,) * 3)
+    draw = ImageDraw.Draw(canvas)
+    font = ImageFont.load_default()
+    x = 0
+    for im, label in zip(images, labels):
+        canvas.paste(Image.fromarray(im, "RGB"), (x, label_height))
+        left, top, right, bottom = draw.textbbox((0, 0), label, font=font)
+        tx = x + (im.shape[1] - (right - left)) // 2 - left
+        ty = (label_height - (bottom - top)) // 2 - top
+        draw.text((tx, ty), label, fill=(0, 0, 0), font=font)
+        x += im.shape[1] + gap
+    return np.asarray(canvas, dtype=np.uint8)
+
+
+def loss_plot(losses, path, size=(640, 400), title="loss"):
+    """A loss-vs-iteration PNG with a log-scale y axis, axes, ticks and labels, drawn with Pillow.
+
+    Non-finite and non-positive losses have no place on a log axis and are left out of the curve.
+    Returns the path written.
+    """
+    losses = np.asarray(losses, dtype=np.float64).ravel()
+    it = np.arange(len(losses))
+    keep = np.isfinite(losses) & (losses > 0)
+    W, H = size
+    left, right, top, bottom = 72, 20, 28, 46  # margins around the plot area, pixels
+    pw, ph = W - left - right, H - top - bottom
+    if pw < 10 or ph < 10:
+        raise ValueError(f"size = {size}: too small for the plot")
+    canvas = Image.new("RGB", (W, H), (255, 255, 255))
+    draw = ImageDraw.Draw(canvas)
+    font = ImageFont.load_default()
+
+    if keep.any():
+        lo, hi = np.log10(losses[keep].min()), np.log10(losses[keep].max())
+    else:
+        lo, hi = 0.0, 1.0
+    if hi - lo < 1e-9:
+        lo, hi = lo - 0.5, hi + 0.5
+    y0, y1 = math.floor(lo), math.ceil(hi)  # whole decades bound the axis
+    n_max = max(len(losses) - 1, 1)
+
+    def px(i):
+        return left + pw * i / n_max
+
+    def py(log_v):
+        return top + ph * (y1 - log_v) / (y1 - y0)
+
+    # y ticks: every decade, with 2x and 5x minor labels when the range spans at most two decades
+    for e in range(y0, y1 + 1):
+        for mult in ((1, 2, 5) if y1 - y0 <= 2 else (1,)):
+            v = math.log10(mult) + e
+            if v > y1 + 1e-12:
+                continue
+            y = py(v)
+            draw.line([(left - 5, y), (left, y)], fill=(0, 0, 0))
+            draw.line([(left + 1, y), (left + pw, y)], fill=(225, 225, 225) if mult == 1 else (242, 242, 242))
+            _text(draw, (left - 8, y), f"{mult}e{e}" if mult != 1 else f"1e{e}", font, anchor="rm")
+    # x ticks at a 1-2-5 step giving at most about 8 ticks
+    step = _nice_step(n_max / 8)
+    k = 0
+    while k <= n_max:
+        x = px(k)
+        draw.line([(x, top + ph), (x, top + ph + 5)], fill=(0, 0, 0))
+        _text(draw, (x, top + ph + 8), str(k), font, anchor="mt")
+        k += step
+    draw.rectangle([left, top, left + pw, top + ph], outline=(0, 0, 0))
+
+    points = [(px(i), py(math.log10(v))) for i, v, ok in zip(it, losses, keep) if ok]
+    if len(points) > 1:
+        draw.line(points, fill=(200, 30, 30), width=2)
+    for p in points if len(points) <= 60 else points[-1:]:
+        draw.ellipse([p[0] - 2, p[1] - 2, p[0] + 2, p[1] + 2], fill=(200, 30, 30))
+
+    _text(draw, (left + pw / 2, H - 6), "iteration", font, anchor="md")
+    _text(draw, (left + pw / 2, top / 2), f"{title} (log scale)", font, anchor="mm")
+    _text(draw, (8, top + ph / 2), "loss", font, anchor="lm")
+    path = Path(path)
+    save_png(np.asarray(canvas), path)
+    return path
+
+
+def _nice_step(raw):
+    """The smallest integer step of the form 1, 2, 5 x 10^k that is >= raw."""
+    raw = max(raw, 1.0)
+    e = 10 ** math.floor(math.log10(raw))
+    for m in (1, 2, 5, 10):
+        if m * e >= raw:
+            return int(m * e)
+    return int(10 * e)
+
+
+def _text(draw, xy, text, font, anchor):
+    """Text anchored like Pillow's anchors ("rm": right-middle, ...); bitmap default fonts lack anchor support."""
+    left, top, right, bottom = draw.textbbox((0, 0), text, font=font)
+    w, h = right - left, bottom - top
+    x, y = xy
+    x -= {"l": 0, "m": w / 2, "r": w}[anchor[0]]
+    y -= {"t": 0, "m": h / 2, "d": h, "b": h}[anchor[1]]
+    draw.text((x - left, y - top), text, fill=(0, 0, 0), font=font)
+
+
+def _as_u8(image):
+    image = np.asarray(image)
+    if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
+        raise ValueError(f"image: expected uint8 (H, W, 3), got {image.dtype} {image.shape}")
+    return np.ascontiguousarray(image)
