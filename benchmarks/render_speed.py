@@ -1,0 +1,77 @@
+"""Milliseconds per rendered frame vs milliseconds of the simulation steps between two frames.
+
+    python benchmarks/render_speed.py [--arch cpu] [--size 512] [--n-grid 64] [--every 5] [--repeats 20]
+
+Renders ~8k particles (a 45 x 45 cell block at 4 particles per cell on a 64^2 grid) in each mode, and times
+`Simulator.forward` over `every` steps (the steps between two saved frames). Compile time is excluded.
+"""
+import argparse
+import time
+
+import numpy as np
+import taichi as ti
+
+import mls_mpm
+from mls_mpm import runtime
+from mls_mpm.render import Renderer
+
+
+def block_particles(cfg, cells=45, lo=0.15):
+    """cells x cells cells from lo, at 2 x 2 particles per cell: cells^2 * 4 particles."""
+    k = int(round(cfg.particles_per_cell ** 0.5))
+    s = lo + (np.arange(cells * k) + 0.5) * cfg.dx / k
+    return np.stack(np.meshgrid(s, s, indexing="ij"), -1).reshape(-1, 2)
+
+
+def best_ms(fn, repeats):
+    """Median wall time of fn() in ms after one warm-up call (compilation)."""
+    fn()
+    ti.sync()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        ti.sync()
+        times.append(time.perf_counter() - t0)
+    return 1e3 * float(np.median(times))
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+                                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser.add_argument("--arch", default="cpu", choices=mls_mpm.config.ARCHS)
+    parser.add_argument("--dtype", default="f64", choices=mls_mpm.config.DTYPES)
+    parser.add_argument("--size", type=int, default=512, help="image side in pixels")
+    parser.add_argument("--n-grid", type=int, default=64)
+    parser.add_argument("--every", type=int, default=5, help="simulation steps between two frames")
+    parser.add_argument("--repeats", type=int, default=20)
+    args = parser.parse_args(argv)
+
+    cfg = mls_mpm.SimConfig(n_grid=args.n_grid, steps=args.every, stride=args.every, arch=args.arch,
+                            dtype=args.dtype)
+    runtime.ensure(cfg)
+    x = block_particles(cfg)
+    rng = np.random.default_rng(0)
+    F = np.eye(2) + 0.2 * rng.standard_normal((len(x), 2, 2))
+    colors = np.where(x[:, :1] < 0.5, [[1.0, 0.0, 0.0]], [[0.0, 0.0, 1.0]])
+    target = np.zeros((cfg.n_grid, cfg.n_grid))
+    target[16:48, 16:48] = cfg.density * cfg.dx ** 2
+    print(f"{len(x)} particles, {cfg.n_grid}^2 grid, {args.size}^2 pixels, arch {args.arch}, {args.dtype}")
+
+    for mode, extra in (("mass", {}), ("color", {"colors": colors}), ("particles", {}),
+                        ("particles", {"F": F}), ("mass", {"target_outline": target})):
+        r = Renderer(cfg.n_grid, len(x), args.size, cfg.density * cfg.dx ** 2, mode,
+                     body_outline="target_outline" in extra)
+        ms = best_ms(lambda: r.render(x, cfg.m_p, **extra), args.repeats)
+        what = mode + "".join(f" +{k}" for k in extra if k != "colors")
+        print(f"render {what:<28s} {ms:8.2f} ms/frame")
+
+    sim = mls_mpm.Simulator(cfg, x)
+    controls = sim.zero_controls()
+    ms = best_ms(lambda: sim.forward(controls), args.repeats)
+    print(f"simulate {args.every} steps (one frame)  {ms:8.2f} ms  ({ms / args.every:.2f} ms/step)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

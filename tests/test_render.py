@@ -1,0 +1,236 @@
+"""Renderers (thesis 7.1, 7.5, Fig 3) and frame output: pixel values, orientation, files."""
+import numpy as np
+import pytest
+from PIL import Image
+
+import mls_mpm
+import mls_mpm.runtime
+from mls_mpm.frames import FrameWriter, frame_paths, loss_plot, sheet, write_gif
+from mls_mpm.render import BODY_OUTLINE_COLOR, PATH, TARGET_COLOR, Renderer, Thresholds, path_color, path_position
+
+N_GRID = 32
+DX = 1.0 / N_GRID
+REST = DX * DX  # density 1: rest node mass density * dx^2
+SIZE = 96
+WHITE = [255, 255, 255]
+RED = [255, 0, 0]
+
+
+@pytest.fixture(scope="module", autouse=True)
+def taichi():
+    mls_mpm.runtime.ensure(mls_mpm.SimConfig(dtype="f64"))
+
+
+def block(lo, hi, ppc_axis=2):
+    """Particles filling [lo, hi)^2 at ppc_axis^2 per cell, evenly spaced, with the rest-density mass."""
+    cells = round((hi - lo) / DX)
+    s = lo + (np.arange(cells * ppc_axis) + 0.5) * DX / ppc_axis
+    x = np.stack(np.meshgrid(s, s, indexing="ij"), -1).reshape(-1, 2)
+    return x, REST / ppc_axis ** 2
+
+
+def pixel_rect(lo, hi):
+    """Row and column slices of the pixels whose centers lie in [lo, hi)^2 of the domain."""
+    c0, c1 = int(np.ceil(lo * SIZE - 0.5)), int(np.ceil(hi * SIZE - 0.5))
+    r0, r1 = SIZE - c1, SIZE - c0  # rows count down from y = 1
+    return slice(r0, r1), slice(c0, c1)
+
+
+def recovered_position(rgb):
+    """Position along the white -> blue -> green -> red path of uint8 colors (inverse of the palette)."""
+    c = rgb.astype(np.float64) / 255.0
+    pts = np.array(PATH)
+    best_d, best_s = np.full(len(c), np.inf), np.zeros(len(c))
+    for k in range(3):
+        a, b = pts[k], pts[k + 1]
+        u = np.clip(((c - a) @ (b - a)) / ((b - a) @ (b - a)), 0.0, 1.0)
+        d = np.linalg.norm(c - (a + u[:, None] * (b - a)), axis=1)
+        better = d < best_d
+        best_d[better], best_s[better] = d[better], k + u[better]
+    assert best_d.max() < 0.01, "a rendered color lies off the colormap path"
+    return best_s
+
+
+@pytest.mark.parametrize("mode", ["mass", "color", "particles"])
+def test_empty_domain_is_white(mode):
+    r = Renderer(N_GRID, 0, SIZE, REST, mode, body_outline=True)
+    img = r.render(np.zeros((0, 2)), REST / 4, colors=np.zeros((0, 3)))
+    assert img.shape == (SIZE, SIZE, 3) and img.dtype == np.uint8
+    assert (img == 255).all()
+
+
+def test_rest_block_is_red_inside_and_white_far_outside():
+    x, m_p = block(0.25, 0.75)
+    r = Renderer(N_GRID, len(x), SIZE, REST, "mass")
+    img = r.render(x, m_p)
+    # P2G and sampling each reach 2 cells; 4 cells inside, the sampled mass is exactly the rest node mass
+    rows, cols = pixel_rect(0.25 + 4 * DX, 0.75 - 4 * DX)
+    np.testing.assert_allclose(r.pixel_m.to_numpy()[rows, cols], 1.0, atol=1e-9)
+    assert (img[rows, cols] == RED).all()
+    outside = np.ones((SIZE, SIZE), bool)
+    rows, cols = pixel_rect(0.25 - 4 * DX, 0.75 + 4 * DX)
+    outside[rows, cols] = False
+    assert (img[outside] == WHITE).all()
+    # the fade from red to white at the edge passes through every color of the path
+    s = recovered_position(img.reshape(-1, 3))
+    assert s.min() == 0.0 and s.max() == 3.0 and np.any((s > 0.9) & (s < 1.1)) and np.any((s > 1.9) & (s < 2.1))
+
+
+def test_mass_colormap_is_monotone_with_documented_anchors():
+    th = Thresholds()
+    r = Renderer(N_GRID, 0, SIZE, REST, "mass", thresholds=th)
+    t = np.linspace(0.0, 2.0, 4001)
+    s, rgb = r.colormap(t)
+    assert np.all(np.diff(s) >= 0.0)
+    np.testing.assert_allclose(s, path_position(t, th), atol=1e-12)
+    np.testing.assert_array_equal(rgb, np.floor(path_color(s) * 255.0 + 0.5).astype(np.uint8))
+    assert np.all(np.diff(recovered_position(rgb)) >= -1.0 / 255.0)  # monotone up to the rounding to bytes
+    anchors = [0.0, th.empty, th.low, th.mid, th.high, 5.0]
+    _, rgb = r.colormap(anchors)
+    np.testing.assert_array_equal(rgb, [WHITE, WHITE, [0, 0, 255], [0, 255, 0], RED, RED])
+
+
+def test_rendered_mass_colors_are_monotone_in_sampled_mass():
+    rng = np.random.default_rng(0)
+    x = rng.uniform(0.2, 0.8, size=(3000, 2))  # an irregular cloud: masses from zero to above rest
+    r = Renderer(N_GRID, len(x), SIZE, REST, "mass")
+    img = r.render(x, REST / 4 * rng.uniform(0.5, 2.0, size=len(x)))
+    m = r.pixel_m.to_numpy().ravel()
+    assert m.max() > 1.0 and m.min() < 1e-3
+    s = recovered_position(img.reshape(-1, 3)[np.argsort(m, kind="stable")])
+    assert np.all(np.diff(s) >= -1.0 / 255.0)
+
+
+def test_color_field_of_red_body_is_red_inside():
+    x, m_p = block(0.25, 0.75)
+    r = Renderer(N_GRID, len(x), SIZE, REST, "color")
+    img = r.render(x, m_p, colors=np.tile([1.0, 0.0, 0.0], (len(x), 1)))
+    rows, cols = pixel_rect(0.25 + 4 * DX, 0.75 - 4 * DX)
+    assert (img[rows, cols] == RED).all()
+    assert (img[0] == WHITE).all() and (img[:, -1] == WHITE).all()
+    # near the edge the color fades to white along red's own line: G and B stay equal, R stays 255
+    edge = img[(img != 255).any(-1)]
+    assert (edge[:, 0] == 255).all() and (edge[:, 1] == edge[:, 2]).all()
+
+
+def test_color_field_two_halves():
+    x, m_p = block(0.125, 0.875)
+    colors = np.where(x[:, :1] < 0.5, [[1.0, 0.0, 0.0]], [[0.0, 0.0, 1.0]])
+    r = Renderer(N_GRID, len(x), SIZE, REST, "color")
+    img = r.render(x, m_p, colors=(colors * 255).astype(np.uint8))
+    rows, left = pixel_rect(0.125 + 4 * DX, 0.5 - 4 * DX)  # 4 cells from the body's edge and the interface
+    _, right = pixel_rect(0.5 + 4 * DX, 0.875 - 4 * DX)
+    assert (img[rows, left] == RED).all() and (img[rows, right] == [0, 0, 255]).all()
+
+
+@pytest.mark.parametrize("mode", ["mass", "particles"])
+def test_y_axis_points_up(mode):
+    x, m_p = block(0.75, 0.875)  # top-right corner of the domain
+    r = Renderer(N_GRID, len(x), SIZE, REST, mode)
+    img = r.render(x, m_p)
+    rows, cols = np.nonzero((img != 255).any(-1))
+    assert len(rows) and rows.max() < SIZE // 2 and cols.min() >= SIZE // 2
+    assert (img[SIZE - 12, SIZE - 12] == WHITE).all() and (img[12, SIZE - 12] != WHITE).any()
+
+
+def test_particles_ellipses_follow_F_and_targets_are_green():
+    x = np.array([[0.3, 0.5]])
+    target = np.array([[0.7, 0.5]])
+    r = Renderer(N_GRID, 1, SIZE, REST, "particles", radius=3.0)
+    F = np.array([[[3.0, 0.0], [0.0, 1.0]]])  # stretched along x: a 9 x 3 pixel half-axis ellipse
+    img = r.render(x, REST, F=F, target_x=target)
+    body = (img == r.render(x, REST)[int(SIZE / 2), int(0.3 * SIZE)]).all(-1)
+    rows, cols = np.nonzero(body)
+    assert 15 <= cols.max() - cols.min() + 1 <= 19 and 4 <= rows.max() - rows.min() + 1 <= 7
+    green = (img == np.floor(np.array(TARGET_COLOR) * 255 + 0.5).astype(np.uint8)).all(-1)
+    rows, cols = np.nonzero(green)
+    assert len(rows) and abs(cols.mean() + 0.5 - 0.7 * SIZE) < 1.0 and abs(rows.mean() + 0.5 - 0.5 * SIZE) < 1.0
+
+
+def test_target_outline_and_body_outline():
+    res = 2 * N_GRID  # a finer target grid (thesis 8.1)
+    target = np.zeros((res, res))
+    target[res // 4: 3 * res // 4 + 1, res // 4: 3 * res // 4 + 1] = (1.0 / res) ** 2  # rest mass of its nodes
+    r = Renderer(N_GRID, 0, SIZE, REST, "mass", body_outline=True)
+    img = r.render(np.zeros((0, 2)), REST, target_outline=target)
+    rows, cols = np.nonzero((img == 0).all(-1))
+    # the half-mass contour of the square [0.25, 0.75]^2 lies on its edge
+    assert len(rows) > 4 * 0.4 * SIZE
+    assert abs(cols.min() + 0.5 - 0.25 * SIZE) <= 2 and abs(cols.max() + 0.5 - 0.75 * SIZE) <= 2
+    assert abs(rows.min() + 0.5 - 0.25 * SIZE) <= 2 and abs(rows.max() + 0.5 - 0.75 * SIZE) <= 2
+    assert ((img == 0).all(-1) | (img == 255).all(-1)).all()
+    # the body outline surrounds the colored pixels, at the empty threshold
+    x, m_p = block(0.375, 0.625)
+    img = r.render(x, m_p)
+    grey = (img == np.floor(np.array(BODY_OUTLINE_COLOR) * 255 + 0.5).astype(np.uint8)).all(-1)
+    rows, cols = np.nonzero(grey)
+    assert (img[SIZE // 2, SIZE // 2] == RED).all() and len(rows) > 4 * 0.25 * SIZE
+    m = r.pixel_m.to_numpy()
+    assert (m[grey] >= Thresholds().empty).all() and m[grey].max() < 0.1
+    assert cols.min() < (0.375 - DX) * SIZE and cols.max() > (0.625 + DX) * SIZE  # around the faint blue rim
+
+
+def test_render_target_matches_rendered_particles():
+    x, m_p = block(0.25, 0.75)
+    r = Renderer(N_GRID, len(x), SIZE, REST, "mass")
+    img = r.render(x, m_p)
+    grid = r.grid_m.to_numpy()
+    np.testing.assert_array_equal(r.render_target(grid, outline=False), img)
+
+
+def test_frames_are_numbered_without_gaps(tmp_path):
+    img = np.full((8, 8, 3), 7, np.uint8)
+    w = FrameWriter(tmp_path)
+    for k in range(12):
+        w.write(img + k)
+    names = sorted(p.name for p in (tmp_path / "frames").iterdir())
+    assert names == [f"frame_{k:05d}.png" for k in range(12)]
+    assert np.asarray(Image.open(tmp_path / "frames" / "frame_00011.png"))[0, 0, 0] == 18
+    w = FrameWriter(tmp_path, clear=False)  # extending an animation continues the numbering
+    w.write(img)
+    assert [p.name for p in frame_paths(w.frames_dir)][-2:] == ["frame_00011.png", "frame_00012.png"]
+    w = FrameWriter(tmp_path)  # a new run starts over
+    w.write(img)
+    assert [p.name for p in frame_paths(w.frames_dir)] == ["frame_00000.png"]
+
+
+def test_gif_has_downscaled_size_and_every_frame(tmp_path):
+    w = FrameWriter(tmp_path)
+    for k in range(6):
+        img = np.full((128, 96, 3), 255, np.uint8)
+        img[:, : 16 * (k + 1)] = RED
+        w.write(img)
+    n = write_gif(w.frames_dir, tmp_path / "animation.gif", max_size=64, fps=20)
+    with Image.open(tmp_path / "animation.gif") as gif:
+        assert n == 6 and gif.n_frames == 6 and gif.size == (48, 64)
+        assert gif.info["duration"] == 50
+        gif.seek(2)
+        frame = np.asarray(gif.convert("RGB"))
+        assert (frame[32, 2] == RED).all() and (frame[32, -2] == WHITE).all()
+
+
+def test_sheet_places_images_under_labels():
+    images = [np.full((64, 64, 3), v, np.uint8) for v in (0, 60, 120, 180)]
+    out = sheet(images, ["initial", "middle", "final", "target"], gap=8, label_height=20)
+    assert out.shape == (84, 4 * 64 + 3 * 8, 3) and out.dtype == np.uint8
+    for k, im in enumerate(images):
+        np.testing.assert_array_equal(out[20:, k * 72: k * 72 + 64], im)
+        label = out[:20, k * 72: k * 72 + 64]
+        assert (label < 128).any() and (label == 255).mean() > 0.5  # dark text on white
+    with pytest.raises(ValueError):
+        sheet(images, ["one label"])
+
+
+def test_loss_plot_draws_a_decreasing_log_curve(tmp_path):
+    losses = 10.0 ** -np.linspace(0, 3, 40)
+    path = loss_plot(np.append(losses, np.nan), tmp_path / "loss.png")
+    img = np.asarray(Image.open(path).convert("RGB")).astype(int)
+    assert img.shape == (400, 640, 3)
+    curve = (img[..., 0] > 150) & (img[..., 1] < 80) & (img[..., 2] < 80)
+    rows, cols = np.nonzero(curve)
+    left = rows[cols < cols.min() + 5].mean()
+    right = rows[cols > cols.max() - 5].mean()
+    assert right - left > 250  # three decades fall most of the plot's height
+    mid = rows[np.abs(cols - (cols.min() + cols.max()) / 2) < 3].mean()
+    assert abs(mid - (left + right) / 2) < 15  # a straight line on a log axis
+    assert (img[:, :60] < 100).any()  # tick labels left of the axis
