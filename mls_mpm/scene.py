@@ -17,7 +17,7 @@ try:
 except ModuleNotFoundError:  # Python 3.10
     import tomli as tomllib
 
-from .config import ConfigError, SimConfig
+from .config import ARCHS, BOUNDARIES, DTYPES, SCHEDULES, ConfigError, SimConfig
 from .images import ImageError, load_image
 
 LOSS_KINDS = ("position", "mass", "log_mass", "color")
@@ -220,12 +220,13 @@ SPEC = {
         "density": (_SIM["density"], _num(lambda x: x > 0, "a number > 0")),
         "gamma": (_SIM["gamma"], _num(lambda x: x >= 0, "a number >= 0")),
         "gravity": (list(_SIM["gravity"]), _vec(2, "a list [gx, gy] of two numbers")),
-        "boundary": (_SIM["boundary"], _choice(("slip", "sticky"))),
+        "boundary": (_SIM["boundary"], _choice(BOUNDARIES)),
         "bound": (_SIM["bound"], _int(0)),
         "particles_per_cell": (_SIM["particles_per_cell"], _int(1)),
-        "dtype": (_SIM["dtype"], _choice(("f64", "f32"))),
-        "arch": (_SIM["arch"], _choice(("cpu", "gpu", "cuda", "vulkan"))),
+        "dtype": (_SIM["dtype"], _choice(DTYPES)),
+        "arch": (_SIM["arch"], _choice(ARCHS)),
         "threads": (_SIM["threads"], _int(0)),
+        "schedule": (_SIM["schedule"], _choice(SCHEDULES)),
     },
     "control": {
         "stride": (_SIM["stride"], _int(1)),
@@ -314,13 +315,12 @@ class _Reader:
 
     def check_names(self):
         for section, table in self.raw.items():
-            if section not in SPEC:
-                value = f" = {_fmt(table)}" if not isinstance(table, dict) else ""
-                origin = " (from --set)" if any(s == section for s, _ in self.from_set) else ""
-                raise SceneError(f"{self.path}: [{section}]{value}{origin}: unknown section; "
-                                 f"{_suggest(section, SPEC)}")
             if not isinstance(table, dict):
-                raise SceneError(f"{self.path}: {section} = {_fmt(table)}: expected a [{section}] table")
+                raise SceneError(f"{self.path}: {section} = {_fmt(table)}: expected a key inside a section, "
+                                 f"one of {', '.join(f'[{s}]' for s in SPEC)}")
+            if section not in SPEC:
+                origin = " (from --set)" if any(s == section for s, _ in self.from_set) else ""
+                raise SceneError(f"{self.path}: [{section}]{origin}: unknown section; {_suggest(section, SPEC)}")
             for key in table:
                 if key not in SPEC[section]:
                     raise SceneError(f"{self.where(section, key)}: unknown key in [{section}]; "
@@ -425,13 +425,12 @@ def load_scene(path, overrides=()) -> Scene:
         r.fail("loss", "penalty", f"0 with loss.kind = \"{kind}\" (penalty grids weigh the mass losses)")
     if isinstance(penalty, str):
         penalty = r.image("loss", "penalty", penalty)
-    if kind != "position":
-        for key in ("target_scale", "target_offset"):
-            if r.has("loss", key):
-                r.fail("loss", key, f"no {key} with loss.kind = \"{kind}\" (it moves the position loss's targets)")
+    moves = {key: r.get("loss", key) for key in ("target_scale", "target_offset")}
+    for key in moves:
+        if kind != "position" and r.has("loss", key):
+            r.fail("loss", key, f"no {key} with loss.kind = \"{kind}\" (it moves the position loss's targets)")
     loss = LossSettings(kind=kind, grids=grids, weights=weights, penalty=penalty,
-                        penalty_max=r.get("loss", "penalty_max"), target_scale=r.get("loss", "target_scale"),
-                        target_offset=r.get("loss", "target_offset"))
+                        penalty_max=r.get("loss", "penalty_max"), **moves)
 
     optimize = OptimizeSettings(**{key: r.get("optimize", key) for key in SPEC["optimize"]})
     render = {key: r.get("render", key) for key in SPEC["render"]}
