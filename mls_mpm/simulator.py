@@ -65,6 +65,7 @@ class Simulator:
         self._upload_loss(self.fields)
         self._adjoint = None
         self._start = 0
+        self._stop = 0
         self._serial = cfg.serial(self.n_particles)
         self.set_initial(x0)
 
@@ -113,18 +114,27 @@ class Simulator:
         self._start = start
         return losses.evaluate(s, self.cfg.steps) if self.loss is not None else 0.0
 
-    def backward(self):
-        """dL/dF_pc (K, N, 2, 2) of the last forward pass, from the hand-written reverse kernels."""
+    def backward(self, stop=None):
+        """dL/dF_pc (K, N, 2, 2) of the last forward pass, from the hand-written reverse kernels.
+
+        The reverse pass runs from step N_t down to `stop` (default: the last forward's start); controls
+        acting before `stop` get zero gradient. Stored steps before the last forward's start must come from
+        the same controls (as forward(start=...) requires).
+        """
         self._require_loss()
+        stop = self._start if stop is None else stop
+        if not 0 <= stop < self.cfg.steps:
+            raise ValueError(f"stop = {stop}: expected a step in [0, {self.cfg.steps})")
         a = self._adjoint_state()
         a.adj_F_pc.fill(0.0)
         s = self.fields
         seed(s, a, self.cfg.steps)
         if self._serial:
-            run_reverse_serial(s, a, self._start, self.cfg.steps)
+            run_reverse_serial(s, a, stop, self.cfg.steps)
         else:
-            for f in range(self.cfg.steps - 1, self._start - 1, -1):
+            for f in range(self.cfg.steps - 1, stop - 1, -1):
                 substep_reverse(s, a, f)
+        self._stop = stop
         grad = a.adj_F_pc.to_numpy().astype(np.float64)
         bad = np.argwhere(~np.isfinite(grad))
         if len(bad):
@@ -135,20 +145,29 @@ class Simulator:
 
     @property
     def grad_x0(self):
-        """dL/dx of the first simulated step (step `start` of the last forward pass), after backward()."""
-        return self._adjoint.adj_x.to_numpy()[self._start % 2].astype(np.float64)
+        """dL/dx of the step the last backward() stopped at (step 0 by default)."""
+        return self._adjoint.adj_x.to_numpy()[self._stop % 2].astype(np.float64)
 
     @property
     def grad_v0(self):
-        """dL/dv of the first simulated step, after backward()."""
-        return self._adjoint.adj_v.to_numpy()[self._start % 2].astype(np.float64)
+        """dL/dv of the step the last backward() stopped at (step 0 by default)."""
+        return self._adjoint.adj_v.to_numpy()[self._stop % 2].astype(np.float64)
 
-    def final_position_gradient(self):
-        """dL/dx_p of step N_t (eq 42-43), the gradient the `positions` study of thesis 8.1 follows."""
+    def evaluate_positions(self, x):
+        """Loss and dL/dx_p (eq 42-43) for final positions x (N, 2) placed at step N_t, without physics.
+
+        The `positions` study of thesis 8.1 follows this gradient; it overwrites the stored step N_t.
+        """
         self._require_loss()
+        x = self._particle_array(x, "x", (self.n_particles, 2))
+        s = self.fields
+        T = self.cfg.steps
+        last = self.state(T)
+        write_step(s, T, x.astype(self.np_dtype), *(last[k].astype(self.np_dtype) for k in ("v", "C", "F")))
+        L = losses.evaluate(s, T)
         a = self._adjoint_state()
-        seed(self.fields, a, self.cfg.steps)
-        return a.adj_x.to_numpy()[self.cfg.steps % 2].astype(np.float64)
+        seed(s, a, T)
+        return L, a.adj_x.to_numpy()[T % 2].astype(np.float64)
 
     def state(self, n):
         """Particle state of stored step n as numpy arrays."""
