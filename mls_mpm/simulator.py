@@ -1,46 +1,21 @@
 """Simulator: orchestrates the forward kernels, the hand-written reverse pass and the Tape oracle."""
 
 import numpy as np
-import taichi as ti
 
 from adjoint.losses import seed
 from adjoint.state import AdjointState
 from adjoint.step import run_reverse_serial, substep_reverse
 
 from . import losses, runtime
-from .grid import grid_op
 from .losses import ColorLoss, PositionLoss
-from .state import FAULT_LEFT_GRID, FAULT_NONE, FAULT_NON_FINITE, State
+from .state import FAULT_LEFT_GRID, FAULT_NON_FINITE, FAULT_NONE, State, read_step, upload_loss, write_step
+from .tape import tape_gradient
 from .step import clear_grid, run_serial, substep
-from .transfer import check_step, g2p, p2g
+from .transfer import check_step
 
 
 class SimulationError(RuntimeError):
     """The simulation left the grid or went non-finite; the message names the step and the particle."""
-
-
-@ti.kernel
-def write_step(s: ti.template(), f: ti.i32, x: ti.types.ndarray(), v: ti.types.ndarray(),
-               C: ti.types.ndarray(), F: ti.types.ndarray()):
-    for p in range(s.n_particles):
-        for d in ti.static(range(2)):
-            s.x[f, p][d] = x[p, d]
-            s.v[f, p][d] = v[p, d]
-            for e in ti.static(range(2)):
-                s.C[f, p][d, e] = C[p, d, e]
-                s.F[f, p][d, e] = F[p, d, e]
-
-
-@ti.kernel
-def read_step(s: ti.template(), f: ti.i32, x: ti.types.ndarray(), v: ti.types.ndarray(),
-              C: ti.types.ndarray(), F: ti.types.ndarray()):
-    for p in range(s.n_particles):
-        for d in ti.static(range(2)):
-            x[p, d] = s.x[f, p][d]
-            v[p, d] = s.v[f, p][d]
-            for e in ti.static(range(2)):
-                C[p, d, e] = s.C[f, p][d, e]
-                F[p, d, e] = s.F[f, p][d, e]
 
 
 class Simulator:
@@ -62,7 +37,7 @@ class Simulator:
         self.loss = loss
         self.fields = State(cfg, self.n_particles, loss_grids=loss.grids if loss else (),
                            position_loss=isinstance(loss, PositionLoss), colors=isinstance(loss, ColorLoss))
-        self._upload_loss(self.fields)
+        upload_loss(self.fields, self.loss)
         self._adjoint = None
         self._start = 0
         self._stop = 0
@@ -186,43 +161,11 @@ class Simulator:
         """
         self._require_loss()
         controls = self._controls(controls)
-        if getattr(self, "_tape_state", None) is None:
-            self._tape_state = State(self.cfg, self.n_particles, loss_grids=self.loss.grids,
-                                     position_loss=self.fields.has_position_loss,
-                                     colors=self.fields.has_colors, needs_grad=True)
-            self._upload_loss(self._tape_state)
-        t = self._tape_state
-        init = self.state(0)  # the method, not the fields
-        write_step(t, 0, *(init[k].astype(self.np_dtype) for k in ("x", "v", "C", "F")))
-        t.F_pc.from_numpy(controls.astype(self.np_dtype))
-        for field in (t.grid_m, t.grid_p, t.grid_v, t.loss, *(g.m for g in t.loss_grids)):
-            field.fill(0.0)
-        T = self.cfg.steps
-        with ti.ad.Tape(loss=t.loss, validation=validation):
-            for f in range(T):
-                p2g(t, f)
-                grid_op(t, f)
-                g2p(t, f)
-            for g in t.loss_grids:
-                losses.splat(t, g, T)
-                losses.grid_loss(t, g)
-            if t.has_position_loss:
-                losses.position_loss(t, T)
-        return t.F_pc.grad.to_numpy().astype(np.float64)
+        _, grad, self._tape_state = tape_gradient(self.cfg, self.state(0), self.loss, controls, validation,
+                                                  getattr(self, "_tape_state", None))
+        return grad
 
     # helpers
-    def _upload_loss(self, s):
-        if self.loss is None:
-            return
-        for g, spec in zip(s.loss_grids, self.loss.grids):
-            g.target.from_numpy(spec.target.astype(self.np_dtype))
-            if spec.alpha is not None:
-                g.alpha.from_numpy(spec.alpha.astype(self.np_dtype))
-        if isinstance(self.loss, PositionLoss):
-            s.target_x.from_numpy(self.loss.target.astype(self.np_dtype))
-        if isinstance(self.loss, ColorLoss):
-            s.color.from_numpy(self.loss.colors.astype(self.np_dtype))
-
     def _adjoint_state(self):
         if self._adjoint is None:
             self._adjoint = AdjointState(self.fields, runtime.real(self.cfg.dtype))

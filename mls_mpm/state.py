@@ -103,3 +103,42 @@ def estimate_bytes(n_particles, steps, n_grid, n_controls, word):
     particle = (steps + 1) * n_particles * (2 + 2 + 4 + 4) + n_controls * n_particles * 4
     grid = steps * n_grid * n_grid * (1 + 2 + 2)
     return (particle + grid) * word
+
+
+def upload_loss(s, loss):
+    """Copy a loss's targets (and particle colors / target positions) into the state's fields."""
+    if loss is None:
+        return
+    np_dtype = np.float64 if s.x.dtype == ti.f64 else np.float32
+    for g, spec in zip(s.loss_grids, loss.grids):
+        g.target.from_numpy(spec.target.astype(np_dtype))
+        if spec.alpha is not None:
+            g.alpha.from_numpy(spec.alpha.astype(np_dtype))
+    if s.has_position_loss:
+        s.target_x.from_numpy(loss.target.astype(np_dtype))
+    if s.has_colors:
+        s.color.from_numpy(loss.colors.astype(np_dtype))
+
+
+@ti.kernel
+def write_step(s: ti.template(), f: ti.i32, x: ti.types.ndarray(), v: ti.types.ndarray(),
+               C: ti.types.ndarray(), F: ti.types.ndarray()):
+    for p in range(s.n_particles):
+        for d in ti.static(range(2)):
+            s.x[f, p][d] = x[p, d]
+            s.v[f, p][d] = v[p, d]
+            for e in ti.static(range(2)):
+                s.C[f, p][d, e] = C[p, d, e]
+                s.F[f, p][d, e] = F[p, d, e]
+
+
+@ti.kernel
+def read_step(s: ti.template(), f: ti.i32, x: ti.types.ndarray(), v: ti.types.ndarray(),
+              C: ti.types.ndarray(), F: ti.types.ndarray()):
+    for p in range(s.n_particles):
+        for d in ti.static(range(2)):
+            x[p, d] = s.x[f, p][d]
+            v[p, d] = s.v[f, p][d]
+            for e in ti.static(range(2)):
+                C[p, d, e] = s.C[f, p][d, e]
+                F[p, d, e] = s.F[f, p][d, e]
