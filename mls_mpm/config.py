@@ -38,6 +38,8 @@ class SimConfig:
     schedule: "parallel" launches one kernel per step with parallel loops; "serial" runs all steps in one
         serial launch (faster for small scenes on a CPU, where launch cost dominates); "auto" picks
         serial on a CPU below SERIAL_BELOW particle-node units (see BENCHMARKS.md), else parallel.
+    max_memory_gb: refuse a simulator whose preallocated fields would exceed this many GiB
+        (0: 90% of the memory available when it is built).
     """
 
     n_grid: int = 64
@@ -56,6 +58,7 @@ class SimConfig:
     arch: str = "cpu"
     threads: int = 0
     schedule: str = "auto"
+    max_memory_gb: float = 0.0
 
     def __post_init__(self):
         object.__setattr__(self, "gravity", tuple(float(g) for g in self.gravity))
@@ -65,6 +68,9 @@ class SimConfig:
         _check_int(self, "bound", 0)
         _check_int(self, "particles_per_cell", 1)
         _check_int(self, "threads", 0)
+        if isinstance(self.max_memory_gb, bool) or not isinstance(self.max_memory_gb, (int, float)) \
+                or not self.max_memory_gb >= 0:
+            raise ConfigError(f"max_memory_gb = {self.max_memory_gb!r}: expected a number >= 0 (0: automatic)")
         for name in ("dt", "E", "density"):
             _check_positive(self, name)
         if not (isinstance(self.nu, (int, float)) and 0.0 <= self.nu < 0.5):

@@ -227,6 +227,7 @@ SPEC = {
         "arch": (_SIM["arch"], _choice(ARCHS)),
         "threads": (_SIM["threads"], _int(0)),
         "schedule": (_SIM["schedule"], _choice(SCHEDULES)),
+        "max_memory_gb": (_SIM["max_memory_gb"], _num(lambda x: x >= 0, "a number >= 0 (0: automatic)")),
     },
     "control": {
         "stride": (_SIM["stride"], _int(1)),
