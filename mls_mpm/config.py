@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, fields
 
 BOUNDARIES = ("slip", "sticky")
@@ -10,6 +11,10 @@ ARCHS = ("cpu", "gpu", "cuda", "vulkan")
 SCHEDULES = ("auto", "serial", "parallel")
 SERIAL_BELOW = 4000  # particles + grid nodes under which "auto" runs serially on a CPU
 STENCIL = 4  # the cubic B-spline touches 4 nodes per axis (base = floor(x/dx) - 1)
+
+
+class CFLWarning(UserWarning):
+    """dt exceeds the CFL limit of the material and grid."""
 
 
 class ConfigError(ValueError):
@@ -85,6 +90,10 @@ class SimConfig:
             raise ConfigError(f"gravity = {self.gravity!r}: expected two finite numbers")
         if self.stride > self.steps:
             raise ConfigError(f"stride = {self.stride}: expected at most steps = {self.steps}")
+        if self.dt > self.cfl_dt:
+            warnings.warn(f"dt = {self.dt:g} exceeds the CFL limit dx / sqrt((lambda + 2 mu) / density) = "
+                          f"{self.cfl_dt:.4g}; the explicit update will likely blow up (scene files refuse it)",
+                          CFLWarning, stacklevel=3)
         for name, allowed in (("boundary", BOUNDARIES), ("dtype", DTYPES), ("arch", ARCHS),
                                 ("schedule", SCHEDULES)):
             if getattr(self, name) not in allowed:
