@@ -12,6 +12,12 @@ from .transfer import g2p_reverse_particle, p2g_reverse_particle
 
 @ti.func
 def grid_node_reverse_and_clear(s: ti.template(), a: ti.template(), f, i, j):
+    if ti.static(s.lanes > 0):  # dL/dv_i = the sum of the threads' private grids, zeroed for the next step
+        g = ti.Vector.zero(float, 2)
+        for lane in ti.static(range(s.lanes)):
+            g += a.lane_adj_v[lane, i, j]
+            a.lane_adj_v[lane, i, j] = ti.Vector.zero(float, 2)
+        a.adj_grid_v[i, j] = g
     grid_op_reverse_node(s, a, f, i, j)
     a.adj_grid_v[i, j] = ti.Vector.zero(float, 2)
 
@@ -24,10 +30,15 @@ def p2g_reverse_and_clear(s: ti.template(), a: ti.template(), f, p):
 
 @ti.kernel
 def substep_reverse(s: ti.template(), a: ti.template(), f: ti.i32):
-    """Reverse G2P, reverse grid operations, reverse P2G of step f (reverse G2P scatters: serial on a CPU)."""
-    ti.loop_config(serialize=s.serial_scatter)
-    for p in range(s.n_particles):
-        g2p_reverse_particle(s, a, f, p)
+    """Reverse G2P, reverse grid operations, reverse P2G of step f (reverse G2P scatters like forward P2G)."""
+    if ti.static(s.lanes > 0):
+        ti.loop_config(block_dim=1)
+        for lane in range(s.lanes):
+            for p in range(lane * s.lane_chunk, ti.min((lane + 1) * s.lane_chunk, s.n_particles)):
+                g2p_reverse_particle(s, a, f, p, lane)
+    else:
+        for p in range(s.n_particles):
+            g2p_reverse_particle(s, a, f, p, 0)
     for i, j in ti.ndrange(s.n_grid, s.n_grid):
         grid_node_reverse_and_clear(s, a, f, i, j)
     for p in range(s.n_particles):
@@ -36,12 +47,12 @@ def substep_reverse(s: ti.template(), a: ti.template(), f: ti.i32):
 
 @ti.kernel
 def run_reverse_serial(s: ti.template(), a: ti.template(), f0: ti.i32, f1: ti.i32):
-    """Reverse steps f1-1 down to f0 in one launch, serially (the same bodies as substep_reverse)."""
+    """Reverse steps f1-1 down to f0 in one launch, serially (the same bodies as substep_reverse; no lanes)."""
     ti.loop_config(serialize=True)
     for k in range(f1 - f0):
         f = f1 - 1 - k
         for p in range(s.n_particles):
-            g2p_reverse_particle(s, a, f, p)
+            g2p_reverse_particle(s, a, f, p, 0)
         for i, j in ti.ndrange(s.n_grid, s.n_grid):
             grid_node_reverse_and_clear(s, a, f, i, j)
         for p in range(s.n_particles):

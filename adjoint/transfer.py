@@ -9,7 +9,16 @@ from .material import stress_reverse
 
 
 @ti.func
-def g2p_reverse_particle(s: ti.template(), a: ti.template(), f, p):
+def scatter_adj_v(s: ti.template(), a: ti.template(), lane, i, j, g):
+    """dL/dv_i += g, or into this thread's private grid `lane` (see mls_mpm.transfer.scatter_node)."""
+    if ti.static(s.lanes > 0):
+        a.lane_adj_v[lane, i, j] = a.lane_adj_v[lane, i, j] + g
+    else:
+        a.adj_grid_v[i, j] += g
+
+
+@ti.func
+def g2p_reverse_particle(s: ti.template(), a: ti.template(), f, p, lane):
     """From dL/d(x, v, C, F) of step f + 1 (slot (f+1) % 2): dL/dv_i^f and the G2P part of dL/dx_p^f, dL/dF_p^f.
 
     With g_v = dL/dv^{n+1} + dt dL/dx^{n+1} (eq 21) and g_C = dL/dC^{n+1} + dt dL/dF^{n+1} (F + F_pc)^T (eq 20):
@@ -35,7 +44,7 @@ def g2p_reverse_particle(s: ti.template(), a: ti.template(), f, p):
             N, dN = node_weight(w, dw, ti.Vector([i, j]), s.inv_dx)
             dpos = (ti.Vector([i, j]) - fx) * s.dx
             v_i = s.grid_v[f, base[0] + i, base[1] + j]
-            a.adj_grid_v[base[0] + i, base[1] + j] += N * (g_v + k * g_C @ dpos)
+            scatter_adj_v(s, a, lane, base[0] + i, base[1] + j, N * (g_v + k * g_C @ dpos))
             adj_x += dN * v_i.dot(g_v + k * g_C @ dpos)  # g_C : v_i dpos^T = v_i . g_C dpos
             sum_v += N * v_i
         adj_x -= k * g_C.transpose() @ sum_v
@@ -91,7 +100,7 @@ def p2g_reverse_particle(s: ti.template(), a: ti.template(), f, p):
 def g2p_reverse(s: ti.template(), a: ti.template(), f: ti.i32):
     """Reverse G2P of step f (twin of mls_mpm.transfer.g2p)."""
     for p in range(s.n_particles):
-        g2p_reverse_particle(s, a, f, p)
+        g2p_reverse_particle(s, a, f, p, 0)
 
 
 @ti.kernel

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+import os
 import warnings
 from dataclasses import dataclass, fields
 
@@ -146,6 +147,12 @@ class SimConfig:
         if self.schedule != "auto":
             return self.schedule == "serial"
         return self.arch == "cpu" and n_particles + self.n_grid ** 2 < SERIAL_BELOW
+
+    def lanes(self, n_particles) -> int:
+        """Private scatter grids (one per CPU thread) of the parallel schedule; 0: atomics (GPU) or serial."""
+        if self.arch != "cpu" or self.serial(n_particles):
+            return 0
+        return self.threads or os.cpu_count() or 1
 
     def replace(self, **changes) -> "SimConfig":
         values = {f.name: getattr(self, f.name) for f in fields(self)}

@@ -52,13 +52,14 @@ class Simulator:
             loss.check(self.n_particles)
         _check_memory(cfg, self.n_particles)
         self.loss = loss
+        self._serial = cfg.serial(self.n_particles)
         self.fields = State(cfg, self.n_particles, loss_grids=loss.grids if loss else (),
-                           position_loss=isinstance(loss, PositionLoss), colors=isinstance(loss, ColorLoss))
+                            position_loss=isinstance(loss, PositionLoss), colors=isinstance(loss, ColorLoss),
+                            lanes=cfg.lanes(self.n_particles))
         upload_loss(self.fields, self.loss)
         self._adjoint = None
         self._start = 0
         self._stop = 0
-        self._serial = cfg.serial(self.n_particles)
         self.set_initial(x0)
 
     @property

@@ -44,7 +44,8 @@ class State:
     Scalars stored here (dx, dt, mu, ...) are compile-time constants of the kernels that take the state.
     """
 
-    def __init__(self, cfg, n_particles, loss_grids=(), position_loss=False, colors=False, needs_grad=False):
+    def __init__(self, cfg, n_particles, loss_grids=(), position_loss=False, colors=False, needs_grad=False,
+                 lanes=0):
         dt_ = real(cfg.dtype)
         T = cfg.steps
         self.n_particles = n_particles
@@ -63,7 +64,10 @@ class State:
         self.bound = cfg.bound
         self.stride = cfg.stride
         self.n_controls = cfg.n_controls
-        self.serial_scatter = cfg.arch == "cpu"  # see mls_mpm.step.substep
+        # lanes > 0: P2G scatters into `lanes` private grids, one per CPU thread, summed by the grid loop
+        # (no float atomics); 0: atomic adds straight into grid f (GPUs, the serial schedule, the Tape)
+        self.lanes = lanes
+        self.lane_chunk = -(-n_particles // max(lanes, 1))  # particles per lane
         self.m_eps = 1e-10 * cfg.m_p  # grid nodes lighter than this are empty (eq 17 guard)
         g = needs_grad
         N, n = n_particles, cfg.n_grid
@@ -76,6 +80,9 @@ class State:
         self.grid_m = ti.field(dt_, shape=(T, n, n), needs_grad=g)  # node mass m_i^n (eq 15)
         self.grid_p = ti.Vector.field(2, dt_, shape=(T, n, n), needs_grad=g)  # node momentum p_i^n (eq 16)
         self.grid_v = ti.Vector.field(2, dt_, shape=(T, n, n), needs_grad=g)  # node velocity v_i^n (eq 17)
+        if lanes:
+            self.lane_m = ti.field(dt_, shape=(lanes, n, n))  # private node mass of one thread
+            self.lane_p = ti.Vector.field(2, dt_, shape=(lanes, n, n))  # private node momentum of one thread
         self.loss = ti.field(dt_, shape=(), needs_grad=g)
         self.fault = ti.field(ti.i64, shape=2)  # first faulty f * N + p per FAULT_* kind
         self.has_colors = colors

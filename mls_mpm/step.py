@@ -1,7 +1,7 @@
 """Forward time stepping, f -> f + 1, in two schedules that share the same per-particle/per-node bodies.
 
 Launch cost dominates small scenes (~50 us per parallel loop on 2 CPU threads), so:
-- `substep(s, f)`: one launch per step, three loops (large scenes, GPUs);
+- `substep(s, f)`: one launch per step, three parallel loops (large scenes, GPUs);
 - `run_serial(s, f0, f1)`: one launch for a whole range of steps, every loop serial (small scenes on a CPU).
 Grid f + 1 is cleared by step f's grid loop, after nothing reads it, so each step needs no extra clear loop.
 """
@@ -25,38 +25,62 @@ def clear_grid(s: ti.template(), f: ti.i32):
 
 
 @ti.func
-def grid_node_and_clear_next(s: ti.template(), f, i, j):
+def gather_lanes(s: ti.template(), f, i, j):
+    """grid f = the sum of the threads' private grids, which are zeroed for the next step."""
+    m = 0.0
+    mom = ti.Vector.zero(float, 2)
+    for lane in ti.static(range(s.lanes)):
+        m += s.lane_m[lane, i, j]
+        mom += s.lane_p[lane, i, j]
+        s.lane_m[lane, i, j] = 0.0
+        s.lane_p[lane, i, j] = ti.Vector.zero(float, 2)
+    s.grid_m[f, i, j] = m
+    s.grid_p[f, i, j] = mom
+
+
+@ti.func
+def grid_node(s: ti.template(), f, i, j):
+    """Grid operations of node (i, j); then grid f + 1 is made ready for the next step's scatter."""
+    if ti.static(s.lanes > 0):
+        gather_lanes(s, f, i, j)
     grid_op_node(s, f, i, j)
-    if f + 1 < s.steps:
-        clear_node(s, f + 1, i, j)
+    if ti.static(s.lanes == 0):
+        if f + 1 < s.steps:
+            clear_node(s, f + 1, i, j)
 
 
 @ti.kernel
 def substep(s: ti.template(), f: ti.i32):
     """Check and P2G (eq 14-16), grid operations (eq 17 + gravity + walls), G2P (eq 18-21) of step f.
 
-    On a CPU the scatter loop (P2G's atomic adds) runs serially, where its atomics become plain adds; that is
-    faster than parallel compare-and-swap on 2 threads. Gather loops run in parallel.
+    With lanes (CPU), each thread scatters its share of the particles into a private grid with plain adds,
+    which the grid loop sums: float atomics (compare-and-swap on a CPU) cost more than the whole step.
     """
-    ti.loop_config(serialize=s.serial_scatter)
-    for p in range(s.n_particles):
-        check_particle(s, f, p)
-        p2g_particle(s, f, p)
+    if ti.static(s.lanes > 0):
+        ti.loop_config(block_dim=1)
+        for lane in range(s.lanes):
+            for p in range(lane * s.lane_chunk, ti.min((lane + 1) * s.lane_chunk, s.n_particles)):
+                check_particle(s, f, p)
+                p2g_particle(s, f, p, lane)
+    else:
+        for p in range(s.n_particles):
+            check_particle(s, f, p)
+            p2g_particle(s, f, p, 0)
     for i, j in ti.ndrange(s.n_grid, s.n_grid):
-        grid_node_and_clear_next(s, f, i, j)
+        grid_node(s, f, i, j)
     for p in range(s.n_particles):
         g2p_particle(s, f, p)
 
 
 @ti.kernel
 def run_serial(s: ti.template(), f0: ti.i32, f1: ti.i32):
-    """Steps f0..f1-1 in one launch, serially (the same bodies as substep)."""
+    """Steps f0..f1-1 in one launch, serially (the same bodies as substep; s.lanes must be 0)."""
     ti.loop_config(serialize=True)
     for f in range(f0, f1):
         for p in range(s.n_particles):
             check_particle(s, f, p)
-            p2g_particle(s, f, p)
+            p2g_particle(s, f, p, 0)
         for i, j in ti.ndrange(s.n_grid, s.n_grid):
-            grid_node_and_clear_next(s, f, i, j)
+            grid_node(s, f, i, j)
         for p in range(s.n_particles):
             g2p_particle(s, f, p)

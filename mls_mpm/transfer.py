@@ -36,7 +36,18 @@ def affine_momentum(s: ti.template(), f, p, Fs):
 
 
 @ti.func
-def p2g_particle(s: ti.template(), f, p):
+def scatter_node(s: ti.template(), f, lane, i, j, dm, dp):
+    """m_i += dm, p_i += dp on grid f, or on this thread's private grid `lane` (plain adds, no atomics)."""
+    if ti.static(s.lanes > 0):
+        s.lane_m[lane, i, j] = s.lane_m[lane, i, j] + dm
+        s.lane_p[lane, i, j] = s.lane_p[lane, i, j] + dp
+    else:
+        s.grid_m[f, i, j] += dm
+        s.grid_p[f, i, j] += dp
+
+
+@ti.func
+def p2g_particle(s: ti.template(), f, p, lane):
     """Scatter particle p of step f: m_i += N m_p (eq 15), p_i += N [m_p v_p (1 - dt gamma) + G_p dpos] (eq 16)."""
     base, fx = stencil(s.x[f, p], s.inv_dx)
     if inside(base, s.n_grid):
@@ -46,8 +57,7 @@ def p2g_particle(s: ti.template(), f, p):
         for i, j in ti.static(ti.ndrange(4, 4)):
             N = w[i, 0] * w[j, 1]
             dpos = (ti.Vector([i, j]) - fx) * s.dx  # x_i - x_p
-            s.grid_m[f, base[0] + i, base[1] + j] += N * s.m_p
-            s.grid_p[f, base[0] + i, base[1] + j] += N * (mv + G @ dpos)
+            scatter_node(s, f, lane, base[0] + i, base[1] + j, N * s.m_p, N * (mv + G @ dpos))
 
 
 @ti.func
@@ -92,7 +102,7 @@ def check_particle(s: ti.template(), f, p):
 def p2g(s: ti.template(), f: ti.i32):
     """P2G of step f into grid f (the grid of step f must be zero)."""
     for p in range(s.n_particles):
-        p2g_particle(s, f, p)
+        p2g_particle(s, f, p, 0)
 
 
 @ti.kernel
