@@ -61,8 +61,13 @@ def build_parser():
     render.add_argument("--arch", choices=["cpu", "gpu"], help="override sim.arch")
 
     bench = sub.add_parser("bench", formatter_class=fmt, help="benchmarks (figures for BENCHMARKS.md)")
-    bench.add_argument("what", choices=["gradient"], help="gradient: forward/backward/Tape speed and memory")
-    bench.add_argument("--quick", action="store_true", help="fewer steps, for a smoke run")
+    bench.add_argument("what", choices=["gradient", "tradeoff"],
+                       help="gradient: forward/backward/Tape speed and memory; tradeoff: accuracy against time "
+                            "over the settings of SCENE")
+    bench.add_argument("scene", nargs="?", help="scene file (tradeoff only)")
+    bench.add_argument("--out", help="tradeoff: output folder (default: renders/tradeoff_<scene name>/)")
+    bench.add_argument("--quick", action="store_true",
+                       help="gradient: 40 steps; tradeoff: fewer rows and iterations (under 10 minutes)")
     return p
 
 
@@ -129,9 +134,17 @@ def cmd_render(args):
 
 
 def cmd_bench(args):
-    from .bench import bench_gradient
+    if args.what == "gradient":
+        from .bench import bench_gradient
 
-    bench_gradient(quick=args.quick)
+        bench_gradient(quick=args.quick)
+        return 0
+    from .scene import SceneError
+    from .tradeoff import bench_tradeoff
+
+    if not args.scene:
+        raise SceneError("bench tradeoff: expected a SCENE file, e.g. mls-mpm bench tradeoff scenes/circle_to_torus.toml")
+    bench_tradeoff(args.scene, out=args.out, quick=args.quick)
     return 0
 
 
