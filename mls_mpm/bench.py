@@ -72,7 +72,7 @@ def measure(case, path, steps):
 
 
 def _child(case_name, path, steps, tiny=False):
-    case = dict(CASES[case_name])
+    case = dict(CASES[case_name]) if isinstance(case_name, str) else dict(case_name)
     if tiny:  # the same kernels at a negligible size: what the process holds besides the fields
         case.update(particles=64)
         steps = 2
@@ -106,3 +106,82 @@ def bench_gradient(quick=False, emit=print):
         emit(f"| {label} | {fwd:.3f} | {case['particles'] / fwd * 1e3 / 1e6:.2f} M | {bwd:.3f} | {bwd / fwd:.2f} | "
              f"{tp:.3f} | {tp / (fwd + bwd):.2f} | {m_man:.0f} | {m_tape:.0f} | {m_man / m_tape:.2f} |")
     return rows
+
+
+# Scaling sweeps (issue 5): one quantity varied from the large case at a time.
+SWEEPS = {
+    "particles": [1024, 4096, 16384, 65536],
+    "steps": [50, 200, 800],
+    "n_grid": [32, 64, 128, 256],
+}
+
+
+def bench_scaling(quick=False, emit=print, plot_path="scaling.png"):
+    """Forward, manual backward and Tape ms/step and peak memory against particles, steps and grid."""
+    from .config import SimConfig
+    from .state import estimate_bytes
+
+    base = dict(CASES["large"], steps=100 if quick else 200)
+    results = {}
+    emit("| varied | value | fwd ms/step | manual bwd ms/step | Tape fwd+bwd ms/step | manual peak MiB | "
+         "Tape peak MiB | field estimate MiB |")
+    emit("|---|---|---|---|---|---|---|---|")
+    for key, values in SWEEPS.items():
+        for v in values[:3] if quick else values:
+            case = dict(base, **{key: v})
+            steps = case["steps"]
+            man = _child(case, "manual", steps)
+            tape = _child(case, "tape", steps)
+            cfg = SimConfig(n_grid=case["n_grid"], steps=steps, stride=10, dtype=case["dtype"])
+            est = estimate_bytes(cfg, case["particles"]) / 2 ** 20
+            results.setdefault(key, []).append((v, man["forward_ms"], man["backward_ms"], tape["tape_ms"]))
+            emit(f"| {key} | {v} | {man['forward_ms']:.3f} | {man['backward_ms']:.3f} | {tape['tape_ms']:.3f} | "
+                 f"{man['peak_mib']:.0f} | {tape['peak_mib']:.0f} | {est:.0f} |")
+    per = 12 * 4  # x, v, C, F: 12 f32 words per particle-step (state.estimate_bytes)
+    emit(f"\nField memory grows linearly in particles x steps: {per} bytes per particle-step in f32 (twice that in "
+         f"f64), plus 20 bytes per grid node per step (64^2: 80 KiB per step). 24 GiB holds about "
+         f"{24 * 2 ** 30 / per / 1e6:.0f} million particle-steps in f32, e.g. 64k particles x "
+         f"{24 * 2 ** 30 / per / 65536:.0f} steps; Simulator refuses larger scenes up front (sim.max_memory_gb).")
+    _plot_scaling(results, plot_path)
+    return results
+
+
+def _plot_scaling(results, path):
+    """Three log-log panels: ms/step of forward, manual backward and Tape against each varied quantity."""
+    import math
+
+    from PIL import Image, ImageDraw, ImageFont
+
+    from .checkpoint import atomic_write
+
+    W, H, pad = 300, 260, 46
+    img = Image.new("RGB", (W * len(results), H), "white")
+    d = ImageDraw.Draw(img)
+    font = ImageFont.load_default()
+    colors = [(30, 30, 180), (200, 30, 30), (30, 140, 30)]
+    for k, (key, pts) in enumerate(results.items()):
+        ox = k * W
+        xs = [math.log10(p[0]) for p in pts]
+        ys = [math.log10(y) for p in pts for y in p[1:]]
+        x0, x1 = min(xs) - 0.1, max(xs) + 0.1
+        y0, y1 = math.floor(min(ys)), math.ceil(max(ys))
+        y1 += y1 == y0
+
+        def pt(x, y):
+            return ox + pad + (W - pad - 10) * (x - x0) / (x1 - x0), 20 + (H - pad - 20) * (y1 - y) / (y1 - y0)
+
+        d.rectangle([ox + pad, 20, ox + W - 10, H - pad], outline="black")
+        d.text((ox + W / 2, H - 14), f"{key} (log)", fill="black", font=font, anchor="mm")
+        for e in range(y0, y1 + 1):
+            _, y = pt(x0, e)
+            d.text((ox + pad - 4, y), f"1e{e}", fill="black", font=font, anchor="rm")
+        for p in pts:
+            x, _ = pt(math.log10(p[0]), y0)
+            d.text((x, H - pad + 4), str(p[0]), fill="black", font=font, anchor="mt")
+        for c, label in enumerate(("forward", "manual backward", "Tape fwd+bwd")):
+            line = [pt(math.log10(p[0]), math.log10(p[1 + c])) for p in pts]
+            d.line(line, fill=colors[c], width=2)
+            if k == 0:
+                d.text((ox + pad + 6, 24 + 12 * c), label, fill=colors[c], font=font)
+        d.text((ox + pad, 6), "ms per step", fill="black", font=font)
+    atomic_write(path, lambda fh: img.save(fh, format="PNG"))

@@ -61,11 +61,13 @@ def build_parser():
     render.add_argument("--arch", choices=["cpu", "gpu"], help="override sim.arch")
 
     bench = sub.add_parser("bench", formatter_class=fmt, help="benchmarks (figures for BENCHMARKS.md)")
-    bench.add_argument("what", choices=["gradient", "tradeoff"],
-                       help="gradient: forward/backward/Tape speed and memory; tradeoff: accuracy against time "
+    bench.add_argument("what", choices=["gradient", "scaling", "tradeoff"],
+                       help="gradient: forward/backward/Tape speed and memory; scaling: the same against "
+                            "particles, steps and grid (writes scaling.png); tradeoff: accuracy against time "
                             "over the settings of SCENE")
     bench.add_argument("scene", nargs="?", help="scene file (tradeoff only)")
-    bench.add_argument("--out", help="tradeoff: output folder (default: renders/tradeoff_<scene name>/)")
+    bench.add_argument("--out", help="tradeoff: output folder (default: renders/tradeoff_<scene name>/); "
+                                     "scaling: folder of scaling.png (default: .)")
     bench.add_argument("--quick", action="store_true",
                        help="gradient: 40 steps; tradeoff: fewer rows and iterations (under 10 minutes)")
     return p
@@ -138,6 +140,11 @@ def cmd_bench(args):
         from .bench import bench_gradient
 
         bench_gradient(quick=args.quick)
+        return 0
+    if args.what == "scaling":
+        from .bench import bench_scaling
+
+        bench_scaling(quick=args.quick, plot_path=Path(args.out or ".") / "scaling.png")
         return 0
     from .scene import SceneError
     from .tradeoff import bench_tradeoff
