@@ -3,9 +3,12 @@
     .venv/bin/python benchmarks/report.py [--quick] [--out BENCHMARKS.md]
 
 Runs, each in its own processes: `mls-mpm bench gradient` (speed and memory of forward, manual backward and
-ti.ad.Tape), benchmarks/render_speed.py (frame rendering vs simulation), and the start-up time of `mls-mpm run`
-cold (empty Taichi offline cache) and warm.
+ti.ad.Tape), `mls-mpm bench scaling` (the same against particles, steps and grid), `mls-mpm bench tradeoff`
+on the torus scene (accuracy against time; the guide below is computed from it), benchmarks/render_speed.py
+(frame rendering vs simulation), and the start-up time of `mls-mpm run` cold (empty Taichi offline cache) and
+warm. Plots go to benchmarks/figures/.
 """
+import csv
 import argparse
 import os
 import platform
@@ -38,6 +41,26 @@ def startup(cache_dir):
     return time.perf_counter() - t0
 
 
+def guide(table):
+    """'To go faster, change X; it costs Y': every tradeoff row against the scene's own settings."""
+    with open(table, newline="") as fh:
+        rows = [r for r in csv.DictReader(fh) if r["status"] == "ok"]
+    base = next(r for r in rows if r["row"] == "base")
+    t0, q0, i0 = float(base["wall_seconds"]), float(base["loss_ratio"]), float(base["iou"])
+    lines = ["| change | time vs scene settings | loss_final / loss_initial | iou | verdict |", "|---|---|---|---|---|"]
+    for r in sorted(rows, key=lambda r: float(r["wall_seconds"])):
+        t, q, i = float(r["wall_seconds"]), float(r["loss_ratio"]), float(r["iou"])
+        if r["row"] == "base":
+            verdict = "reference"
+        elif t < t0:
+            verdict = f"faster; {'costs' if q > q0 else 'also gains'} {abs(q / q0 - 1):.0%} in loss reached"
+        else:
+            verdict = f"slower; {'gains' if q < q0 else 'and loses'} {abs(q / q0 - 1):.0%} in loss reached"
+        lines.append(f"| {r['row']} (`{r['overrides'] or '-'}`) | {t / t0:.2f}x ({t:.0f} s) | {q:.3g} | {i:.3f} "
+                     f"(base {i0:.3f}) | {verdict} |")
+    return "\n".join(lines)
+
+
 def machine():
     cpu = platform.processor() or platform.machine()
     try:
@@ -57,7 +80,13 @@ def main(argv=None):
     p.add_argument("--out", default=str(ROOT / "BENCHMARKS.md"))
     args = p.parse_args(argv)
     quick = ["--quick"] if args.quick else []
+    figures = ROOT / "benchmarks" / "figures"
+    figures.mkdir(exist_ok=True)
     gradient = run(MLS_MPM + ["bench", "gradient"] + quick)
+    scaling = run(MLS_MPM + ["bench", "scaling", "--out", str(figures)] + quick)
+    sweep = ROOT / "renders" / ("tradeoff_report_quick" if args.quick else "tradeoff_report")
+    tradeoff = run(MLS_MPM + ["bench", "tradeoff", "scenes/circle_to_torus.toml", "--quick", "--out", str(sweep)])
+    shutil.copy(sweep / "tradeoff.png", figures / "tradeoff.png")
     render = run([sys.executable, "benchmarks/render_speed.py"] + (["--repeats", "5"] if args.quick else []))
     cache = Path(tempfile.mkdtemp())
     cold = startup(cache)
@@ -76,6 +105,26 @@ f64 at 32^2 with 1,245 particles: forward <= 0.25 ms/step, backward <= 0.3 ms/st
 about 1.0 and 1.2 ms/step, single thread).
 
 {gradient}
+
+## Scaling (`mls-mpm bench scaling`)
+
+One quantity varied at a time from the f32, 64^2, 8k-particle case. ![scaling](benchmarks/figures/scaling.png)
+
+{scaling}
+
+## Speed against accuracy (`mls-mpm bench tradeoff scenes/circle_to_torus.toml --quick`)
+
+Each row changes one setting of the torus scene (2 temporal iterations / optimizer steps, as in `--quick`).
+Loss ratios of rows that change the loss itself (loss grids, penalty) are not comparable to the others; compare
+their iou. ![tradeoff](benchmarks/figures/tradeoff.png)
+
+```
+{tradeoff}
+```
+
+To go faster, change X; it costs Y (computed from the sweep above):
+
+{guide(sweep / "tradeoff.csv")}
 
 ## Rendering (`python benchmarks/render_speed.py`)
 
