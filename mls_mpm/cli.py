@@ -113,7 +113,15 @@ def cmd_run(args):
     stop = StopFlag()
     stop.install()
     emit = (lambda *_: None) if args.quiet else (lambda msg: print(msg, flush=True))
-    summary = run_scene(scene, out, resume=args.resume, emit=emit, should_stop=stop, render=not args.no_render)
+    from .simulator import SimulationError
+
+    try:
+        summary = run_scene(scene, out, resume=args.resume, emit=emit, should_stop=stop,
+                            render=not args.no_render)
+    except SimulationError as e:
+        ckpt = out / "checkpoint.npz"
+        saved = f"; the last good checkpoint is {ckpt}" if ckpt.is_file() else ""
+        raise SimulationError(f"{e}{saved}") from None
     if summary.get("interrupted"):
         return 130 if stop.signal == signal.SIGINT else 143
     if args.quiet:

@@ -120,6 +120,7 @@ class Simulator:
             raise ValueError(f"stop = {stop}: expected a step in [0, {self.cfg.steps})")
         a = self._adjoint_state()
         a.adj_F_pc.fill(0.0)
+        a.fault[None] = -1
         s = self.fields
         seed(s, a, self.cfg.steps)
         if self._serial:
@@ -128,13 +129,13 @@ class Simulator:
             for f in range(self.cfg.steps - 1, stop - 1, -1):
                 substep_reverse(s, a, f)
         self._stop = stop
-        grad = a.adj_F_pc.to_numpy().astype(np.float64)
-        bad = np.argwhere(~np.isfinite(grad))
-        if len(bad):
-            k, p = bad[0][:2]
-            raise SimulationError(f"backward: dL/dF_pc of control {k}, particle {p} is not finite; likely cause: "
-                                  "a forward state near a singularity (see the README's stability notes)")
-        return grad
+        fault = int(a.fault[None])
+        if fault >= 0:
+            f, p = divmod(fault, self.n_particles)
+            raise SimulationError(f"backward, step {f}: particle {p} has a non-finite adjoint (NaN or Inf); likely "
+                                  "cause: a forward state near a singularity or a gradient grown too large over a "
+                                  "long horizon (try fewer steps, smaller controls or optimize.clip)")
+        return a.adj_F_pc.to_numpy().astype(np.float64)
 
     @property
     def grad_x0(self):
