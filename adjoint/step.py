@@ -34,8 +34,8 @@ def p2g_reverse_and_clear(s: ti.template(), a: ti.template(), f, p):
             a.fault[None] = code
 
 
-@ti.kernel
-def substep_reverse(s: ti.template(), a: ti.template(), f: ti.i32):
+@ti.func
+def step_reverse_loops(s: ti.template(), a: ti.template(), f):
     """Reverse G2P, reverse grid operations, reverse P2G of step f (reverse G2P scatters like forward P2G)."""
     if ti.static(s.lanes > 0):
         ti.loop_config(block_dim=1)
@@ -52,14 +52,14 @@ def substep_reverse(s: ti.template(), a: ti.template(), f: ti.i32):
 
 
 @ti.kernel
+def substep_reverse(s: ti.template(), a: ti.template(), f: ti.i32):
+    """Reverse step f in one launch of parallel loops (twin of mls_mpm.step.substep)."""
+    step_reverse_loops(s, a, f)
+
+
+@ti.kernel
 def run_reverse_serial(s: ti.template(), a: ti.template(), f0: ti.i32, f1: ti.i32):
-    """Reverse steps f1-1 down to f0 in one launch, serially (the same bodies as substep_reverse; no lanes)."""
+    """Reverse steps f1-1 down to f0 in one launch, serially (twin of run_serial; s.lanes must be 0)."""
     ti.loop_config(serialize=True)
     for k in range(f1 - f0):
-        f = f1 - 1 - k
-        for p in range(s.n_particles):
-            g2p_reverse_particle(s, a, f, p, 0)
-        for i, j in ti.ndrange(s.n_grid, s.n_grid):
-            grid_node_reverse_and_clear(s, a, f, i, j)
-        for p in range(s.n_particles):
-            p2g_reverse_and_clear(s, a, f, p)
+        step_reverse_loops(s, a, f1 - 1 - k)

@@ -49,12 +49,13 @@ def grid_node(s: ti.template(), f, i, j):
             clear_node(s, f + 1, i, j)
 
 
-@ti.kernel
-def substep(s: ti.template(), f: ti.i32):
+@ti.func
+def step_loops(s: ti.template(), f):
     """Check and P2G (eq 14-16), grid operations (eq 17 + gravity + walls), G2P (eq 18-21) of step f.
 
-    With lanes (CPU), each thread scatters its share of the particles into a private grid with plain adds,
-    which the grid loop sums: float atomics (compare-and-swap on a CPU) cost more than the whole step.
+    At a kernel's top level these are three parallel loops. With lanes (CPU), each thread scatters its share
+    of the particles into a private grid with plain adds, which the grid loop sums: float atomics
+    (compare-and-swap on a CPU) would cost more than the whole step.
     """
     if ti.static(s.lanes > 0):
         ti.loop_config(block_dim=1)
@@ -73,14 +74,14 @@ def substep(s: ti.template(), f: ti.i32):
 
 
 @ti.kernel
+def substep(s: ti.template(), f: ti.i32):
+    """Step f in one launch of parallel loops."""
+    step_loops(s, f)
+
+
+@ti.kernel
 def run_serial(s: ti.template(), f0: ti.i32, f1: ti.i32):
-    """Steps f0..f1-1 in one launch, serially (the same bodies as substep; s.lanes must be 0)."""
+    """Steps f0..f1-1 in one launch, serially (s.lanes must be 0)."""
     ti.loop_config(serialize=True)
     for f in range(f0, f1):
-        for p in range(s.n_particles):
-            check_particle(s, f, p)
-            p2g_particle(s, f, p, 0)
-        for i, j in ti.ndrange(s.n_grid, s.n_grid):
-            grid_node(s, f, i, j)
-        for p in range(s.n_particles):
-            g2p_particle(s, f, p)
+        step_loops(s, f)
