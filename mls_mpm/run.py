@@ -78,13 +78,13 @@ def run_scene(scene, out_dir, resume=False, emit=print, should_stop=None, render
         r = len(done)
         sim.set_initial(**starts[r])
 
-        def on_checkpoint(state, r=r):
+        def on_checkpoint(state):
             _save_checkpoint(ckpt, scene, done, starts, state, elapsed + time.perf_counter() - t0)
 
         if opt.rounds > 1:
             emit(f"round {r + 1}/{opt.rounds}")
         res = method(sim, sim.zero_controls(), opt, on_checkpoint=on_checkpoint, should_stop=should_stop,
-                     emit=emit, resume=_restore(opt_state))
+                     emit=emit, resume=opt_state)
         opt_state = None
         if res.reason == "interrupted":
             interrupted = True
@@ -190,13 +190,6 @@ def _load_checkpoint(path, scene):
         opt_state = dict(meta["opt"])
         opt_state.update({k[4:]: v for k, v in arrays.items() if k.startswith("opt_")})
     return done, starts, opt_state, float(meta.get("elapsed", 0.0))
-
-
-def _restore(opt_state):
-    """An optimizer's resume dict from a checkpointed state (controls travel inside it)."""
-    if opt_state is None:
-        return None
-    return dict(opt_state)
 
 
 def load_result(out_dir):
