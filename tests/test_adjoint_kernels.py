@@ -1,0 +1,516 @@
+"""Each hand-written reverse kernel alone against ti.ad.Tape on its forward twin (thesis eq 41-71).
+
+Technique: the forward kernel runs on a grad-enabled State inside ti.ad.Tape, followed by a scalar
+L = sum_y w_y . y, a random linear functional of the kernel's outputs y, so the Tape's input gradients are
+the vector-Jacobian products of the kernel with w. The reverse kernel runs on a plain State holding the same
+inputs, with w put in the AdjointState as the upstream adjoint dL/dy. Every input adjoint must agree with the
+Tape to a symmetric relative error of at most 1e-8 (both are exact in exact arithmetic; float64 round-off
+through one kernel stays near 1e-14).
+
+Reverse kernels accumulate (+=) into adjoints they share with other kernels (STYLE 4), so those adjoints are
+prefilled with random values b and the test compares (result - b) with the Tape.
+
+Tape(validation=True) is not used here: Taichi only checks the global data access rule under
+ti.init(debug=True), and this session runs without debug (re-initialising would invalidate every other test's
+fields). test_gradients.py::test_forward_kernels_pass_tape_validation runs that check in a subprocess (slow).
+"""
+import numpy as np
+import pytest
+import taichi as ti
+
+from adjoint.grid import grid_op_reverse
+from adjoint.losses import grid_loss_reverse, position_loss_reverse, seed, splat_reverse
+from adjoint.material import stress_reverse
+from adjoint.state import AdjointState
+from adjoint.transfer import g2p_reverse, p2g_reverse
+from conftest import max_rel_err, rel_err
+from mls_mpm import ColorLoss, MassLoss, SimConfig, losses
+from mls_mpm.grid import grid_op
+from mls_mpm.material import stress
+from mls_mpm.state import State
+from mls_mpm.transfer import g2p, p2g
+
+TOL = 1e-8
+N_PARTICLES = 48
+OUTSIDE = 5  # a particle whose stencil leaves the grid: forward and reverse kernels both skip it
+
+# steps = 3, stride = 2: step 2 is a control step (control k = 1, exercising f // stride), step 1 is not.
+KERNEL_CFG = dict(n_grid=16, steps=3, dt=2e-3, E=400.0, nu=0.3, density=1.0, gamma=40.0, gravity=(0.3, -9.8),
+                  bound=3, stride=2, particles_per_cell=4, dtype="f64", arch="cpu")
+CONTROL_STEP, PLAIN_STEP = 2, 1
+
+
+# ------------------------------------------------------------------ the random functional and its seeding
+@ti.data_oriented
+class Upstream:
+    """Weights w of L = sum w . y over particle outputs (x, v, C, F) and grid outputs (m, p, v)."""
+
+    def __init__(self, n_particles, n_grid):
+        N, n = n_particles, n_grid
+        self.x = ti.Vector.field(2, ti.f64, shape=N)
+        self.v = ti.Vector.field(2, ti.f64, shape=N)
+        self.C = ti.Matrix.field(2, 2, ti.f64, shape=N)
+        self.F = ti.Matrix.field(2, 2, ti.f64, shape=N)
+        self.m = ti.field(ti.f64, shape=(n, n))
+        self.p = ti.Vector.field(2, ti.f64, shape=(n, n))
+        self.gv = ti.Vector.field(2, ti.f64, shape=(n, n))
+        self.np = {}
+
+    def draw(self, rng, which):
+        """Random normal weights for the outputs named in `which`, zero for the others."""
+        for name in ("x", "v", "C", "F", "m", "p", "gv"):
+            field = getattr(self, name)
+            shape = field.shape + (() if name == "m" else (2,) if name in ("x", "v", "p", "gv") else (2, 2))
+            w = rng.standard_normal(shape) if name in which else np.zeros(shape)
+            field.from_numpy(w)
+            self.np[name] = w
+        return self
+
+
+@ti.kernel
+def particle_functional(s: ti.template(), w: ti.template(), f: ti.i32):
+    for p in range(s.n_particles):
+        s.loss[None] += (w.x[p].dot(s.x[f, p]) + w.v[p].dot(s.v[f, p]) + (w.C[p] * s.C[f, p]).sum()
+                         + (w.F[p] * s.F[f, p]).sum())
+
+
+@ti.kernel
+def grid_functional(s: ti.template(), w: ti.template(), f: ti.i32):
+    for i, j in ti.ndrange(s.n_grid, s.n_grid):
+        s.loss[None] += (w.m[i, j] * s.grid_m[f, i, j] + w.p[i, j].dot(s.grid_p[f, i, j])
+                         + w.gv[i, j].dot(s.grid_v[f, i, j]))
+
+
+PARTICLE_FIELDS = ("x", "v", "C", "F")
+
+
+class Pair:
+    """The same inputs in a grad-enabled State (for the Tape) and a plain State with its AdjointState."""
+
+    def __init__(self, cfg, n_particles=N_PARTICLES, **state_kw):
+        self.cfg = cfg
+        self.t = State(cfg, n_particles, needs_grad=True, **state_kw)
+        self.s = State(cfg, n_particles, **state_kw)
+        self.a = AdjointState(self.s, ti.f64)
+        self.upstream = Upstream(n_particles, cfg.n_grid)
+        self.N, self.n = n_particles, cfg.n_grid
+
+    def put(self, name, value):
+        getattr(self.t, name).from_numpy(value)
+        getattr(self.s, name).from_numpy(value)
+
+    def randomize(self, rng):
+        """Random inputs at every step: x inside the grid (one particle outside), v, C ~ O(1), F near I."""
+        T1, N, n, K = self.cfg.steps + 1, self.N, self.n, self.cfg.n_controls
+        lo, hi = 1.5 / n, 1.0 - 2.5 / n
+        x = rng.uniform(lo, hi, (T1, N, 2))
+        x[:, OUTSIDE] = (0.3 / n, 0.5)  # base = floor(x / dx) - 1 = -1: the stencil leaves the grid
+        self.put("x", x)
+        self.put("v", rng.standard_normal((T1, N, 2)))
+        self.put("C", 3.0 * rng.standard_normal((T1, N, 2, 2)))
+        self.put("F", np.eye(2) + 0.2 * rng.standard_normal((T1, N, 2, 2)))
+        self.put("F_pc", 0.1 * rng.standard_normal((K, N, 2, 2)))
+        self.put("grid_m", self.cfg.m_p * rng.uniform(0.1, 3.0, (T1 - 1, n, n)))
+        self.put("grid_p", self.cfg.m_p * rng.standard_normal((T1 - 1, n, n, 2)))
+        self.put("grid_v", rng.standard_normal((T1 - 1, n, n, 2)))
+        self.put("loss", np.zeros(()))
+
+    def prefill(self, rng, names, like):
+        """Write random values of the scale of `like[name]` into adjoints `names`; return them."""
+        out = {}
+        for name in names:
+            field = getattr(self.a, name)
+            scale = np.linalg.norm(like[name]) / np.sqrt(like[name].size) + 1e-12
+            out[name] = scale * rng.standard_normal(field.shape + field_tail(field))
+            field.from_numpy(out[name])
+        return out
+
+
+def field_tail(field):
+    if isinstance(field, ti.MatrixField):
+        return (field.n,) if field.ndim == 1 else (field.n, field.m)
+    return ()
+
+
+def tape_grads(t, names, index):
+    return {name: getattr(t, name).grad.to_numpy()[index] for name in names}
+
+
+# ------------------------------------------------------------------ fixtures
+@pytest.fixture(scope="module")
+def pair():
+    return Pair(SimConfig(**KERNEL_CFG))
+
+
+@pytest.fixture(scope="module", params=["slip", "sticky"])
+def grid_pair(request):
+    return Pair(SimConfig(**{**KERNEL_CFG, "boundary": request.param}), n_particles=8)
+
+
+# ------------------------------------------------------------------ reverse G2P
+@pytest.mark.parametrize("f", [CONTROL_STEP, PLAIN_STEP])
+@pytest.mark.parametrize("which", ["x", "v", "C", "F", "x v C F"])
+def test_g2p_reverse_matches_tape(pair, f, which):
+    """g2p_reverse (eq 47-48, 57 first term, 66-69) vs Tape on g2p (eq 18-21): rel err <= 1e-8.
+
+    dL/dv_i^f, dL/dx_p^f and dL/d(F + F_pc)_p^f from dL/d(x, v, C, F)^{f+1}; each output alone, then all.
+    g2p reads neither v^f nor C^f, so adj_v, adj_C of step f must stay as they were.
+    """
+    rng = np.random.default_rng(10 * f + len(which))
+    pair.randomize(rng)
+    w = pair.upstream.draw(rng, which.split())
+    t, s, a = pair.t, pair.s, pair.a
+    with ti.ad.Tape(loss=t.loss):
+        g2p(t, f)
+        particle_functional(t, w, f + 1)
+    tape = tape_grads(t, ("x", "F", "grid_v", "v", "C"), f)
+    tape_F_pc = t.F_pc.grad.to_numpy()
+
+    g2p(s, f)  # the reverse kernel reads C^{f+1} (eq 57)
+    src, dst = (f + 1) % 2, f % 2
+    b = pair.prefill(rng, ("adj_x", "adj_v", "adj_C", "adj_F", "adj_grid_v"),
+                     {"adj_x": np.tile(tape["x"], (2, 1, 1)), "adj_v": np.ones((2, pair.N, 2)),
+                      "adj_C": np.ones((2, pair.N, 2, 2)), "adj_F": np.tile(tape["F"], (2, 1, 1, 1)),
+                      "adj_grid_v": tape["grid_v"]})
+    for name in PARTICLE_FIELDS:  # slot src holds the upstream dL/d(x, v, C, F)^{f+1} = w
+        b["adj_" + name][src] = w.np[name]
+        getattr(a, "adj_" + name).from_numpy(b["adj_" + name])
+    g2p_reverse(s, a, f)
+
+    assert rel_err(a.adj_grid_v.to_numpy() - b["adj_grid_v"], tape["grid_v"]) <= TOL
+    assert rel_err(a.adj_x.to_numpy()[dst] - b["adj_x"][dst], tape["x"]) <= TOL
+    assert rel_err(a.adj_F.to_numpy()[dst] - b["adj_F"][dst], tape["F"]) <= TOL
+    # eq 55: the control enters only through F + F_pc, so the Tape's dL/dF_pc equals dL/dF at a control step
+    k = f // pair.cfg.stride
+    if f % pair.cfg.stride == 0:
+        assert rel_err(tape_F_pc[k], tape["F"]) <= 1e-14
+    else:
+        assert np.all(tape_F_pc == 0.0)
+    # untouched: g2p has no v^f, C^f input, and the upstream slot is read-only
+    assert np.all(tape["v"] == 0.0) and np.all(tape["C"] == 0.0)
+    assert np.array_equal(a.adj_v.to_numpy()[dst], b["adj_v"][dst])
+    assert np.array_equal(a.adj_C.to_numpy()[dst], b["adj_C"][dst])
+    assert np.array_equal(a.adj_x.to_numpy()[src], w.np["x"])
+    # the skipped particle gets nothing from either
+    assert np.all(tape["x"][OUTSIDE] == 0.0) and np.all(tape["F"][OUTSIDE] == 0.0)
+
+
+# ------------------------------------------------------------------ reverse grid operations
+def grid_inputs(cfg, rng):
+    """Grid mass with every case of the eq 17 guard: ordinary nodes, empty (0), below and just above m_eps;
+    grid momentum with velocities O(1), and small ones whose sign gravity flips (kind 3)."""
+    n, m_p = cfg.n_grid, cfg.m_p
+    m_eps = 1e-10 * m_p
+    m = m_p * rng.uniform(0.05, 3.0, (n, n))
+    kind = rng.integers(0, 8, (n, n))
+    m[kind == 0] = 0.0
+    m[kind == 1] = 0.5 * m_eps
+    m[kind == 2] = 3.0 * m_eps
+    v = 2.0 * rng.standard_normal((n, n, 2))  # p = m v keeps node velocities O(1) at every mass
+    # nodes where gravity flips the sign of v: p/m against g, |p/m| < dt |g|, so the wall mask must be taken
+    # on p/m + dt g (the velocity the forward pass masks), not on p/m
+    flip = kind == 3
+    v[flip] = -0.5 * cfg.dt * np.asarray(cfg.gravity)
+    return m, m[..., None] * v, kind
+
+
+@pytest.mark.parametrize("f", [0, 2])
+def test_grid_op_reverse_matches_tape(grid_pair, f):
+    """grid_op_reverse (eq 49-53, gravity, walls) vs Tape on grid_op (eq 17): per-node rel err <= 1e-8.
+
+    Covers wall-zone nodes (bound = 3 of 16 per side; slip masks one component, sticky both), empty nodes,
+    nodes below the m_eps threshold (zero adjoint) and just above it (adjoints ~ 1/m_eps, so the error
+    is measured node by node rather than by a norm over the grid).
+    """
+    pair = grid_pair
+    cfg = pair.cfg
+    rng = np.random.default_rng(f + (cfg.boundary == "sticky"))
+    pair.randomize(rng)
+    m, p, kind = grid_inputs(cfg, rng)
+    T = cfg.steps
+    pair.put("grid_m", np.broadcast_to(m, (T,) + m.shape).copy())
+    pair.put("grid_p", np.broadcast_to(p, (T,) + p.shape).copy())
+    w = pair.upstream.draw(rng, ["gv"])
+    t, s, a = pair.t, pair.s, pair.a
+    with ti.ad.Tape(loss=t.loss):
+        grid_op(t, f)
+        grid_functional(t, w, f)
+    tape = tape_grads(t, ("grid_m", "grid_p"), f)
+
+    a.adj_grid_v.from_numpy(w.np["gv"])
+    a.adj_grid_m.from_numpy(rng.standard_normal(m.shape))  # grid_op_reverse owns these: it overwrites them
+    a.adj_grid_p.from_numpy(rng.standard_normal(p.shape))
+    grid_op_reverse(s, a, f)
+    adj_m, adj_p = a.adj_grid_m.to_numpy(), a.adj_grid_p.to_numpy()
+
+    assert max_rel_err(adj_p, tape["grid_p"]) <= TOL
+    assert max_rel_err(adj_m, tape["grid_m"], axis=None) <= TOL
+    empty = m <= 1e-10 * cfg.m_p
+    assert np.all(adj_m[empty] == 0.0) and np.all(adj_p[empty] == 0.0)
+    b, n = cfg.bound, cfg.n_grid
+    wall = np.zeros((n, n), bool)
+    wall[:b, :] = wall[n - b:, :] = wall[:, :b] = wall[:, n - b:] = True
+    light = (kind == 2) & ~wall
+    assert np.any(light) and np.all(np.abs(adj_m[light]) > 0.0)  # just above m_eps still passes gradient back
+    # the walls really cut gradients in this test: some wall-zone component is zero in both
+    cut = (tape["grid_p"] == 0.0) & ~empty[..., None]
+    assert np.any(cut[wall]) and not np.any(cut[~wall])
+    if cfg.boundary == "sticky":
+        assert np.all(adj_p[wall] == 0.0)
+    else:
+        assert np.any(adj_p[wall] != 0.0)
+
+
+# ------------------------------------------------------------------ reverse P2G
+@pytest.mark.parametrize("f", [CONTROL_STEP, PLAIN_STEP])
+@pytest.mark.parametrize("which", ["m", "p", "m p"])
+def test_p2g_reverse_matches_tape(pair, f, which):
+    """p2g_reverse (eq 54-65, 71) vs Tape on p2g (eq 14-16, drag gamma dt = 0.08): rel err <= 1e-8.
+
+    dL/d(x, v, C, F)_p^f from dL/dm_i, dL/dp_i; at a control step (f = 2, k = 1) also dL/dF_pc^k, which
+    p2g_reverse forms as dL/dF_pc^k += dL/dF_p^f (eq 55) after adding its own part to dL/dF_p^f.
+    """
+    rng = np.random.default_rng(100 + 10 * f + len(which))
+    pair.randomize(rng)
+    w = pair.upstream.draw(rng, which.split())
+    t, s, a = pair.t, pair.s, pair.a
+    for st in (t, s):
+        st.grid_m.fill(0.0)
+        st.grid_p.fill(0.0)
+    with ti.ad.Tape(loss=t.loss):
+        p2g(t, f)
+        grid_functional(t, w, f)
+    tape = tape_grads(t, PARTICLE_FIELDS, f)
+    tape_F_pc = t.F_pc.grad.to_numpy()
+
+    a.adj_grid_m.from_numpy(w.np["m"])
+    a.adj_grid_p.from_numpy(w.np["p"])
+    like = {"adj_" + k: np.stack([tape[k]] * 2) for k in PARTICLE_FIELDS}
+    like["adj_F_pc"] = tape_F_pc + tape["F"]
+    b = pair.prefill(rng, list(like), like)
+    p2g_reverse(s, a, f)
+
+    dst = f % 2
+    for name in PARTICLE_FIELDS:
+        got = getattr(a, "adj_" + name).to_numpy()
+        assert rel_err(got[dst] - b["adj_" + name][dst], tape[name]) <= TOL, name
+        assert np.array_equal(got[1 - dst], b["adj_" + name][1 - dst]), name  # the other slot is untouched
+        assert np.all(tape[name][OUTSIDE] == 0.0)
+    got_F_pc = a.adj_F_pc.to_numpy() - b["adj_F_pc"]
+    k = f // pair.cfg.stride
+    if f % pair.cfg.stride == 0:
+        assert rel_err(tape_F_pc[k], tape["F"]) <= 1e-14  # eq 55 in the oracle itself
+        # dL/dF_pc^k += everything dL/dF_p^f holds, the prefill standing in for the G2P part (eq 57);
+        # a skipped particle (its stencil left the grid) has no G2P part either, so it gets nothing
+        expected = b["adj_F"][dst] + tape_F_pc[k]
+        expected[OUTSIDE] = 0.0
+        assert rel_err(got_F_pc[k], expected) <= TOL
+        others = [j for j in range(pair.cfg.n_controls) if j != k]
+        assert np.all(got_F_pc[others] == 0.0)
+    else:
+        assert np.all(tape_F_pc == 0.0) and np.all(got_F_pc == 0.0)
+
+
+# ------------------------------------------------------------------ dP/dF contraction
+@ti.kernel
+def stress_functional(Fs: ti.template(), W: ti.template(), loss: ti.template(), mu: ti.f64, lam: ti.f64):
+    for q in Fs:
+        loss[None] += (W[q] * stress(Fs[q], mu, lam)).sum()
+
+
+@ti.kernel
+def stress_adjoint(Fs: ti.template(), W: ti.template(), out: ti.template(), mu: ti.f64, lam: ti.f64):
+    for q in Fs:
+        out[q] = stress_reverse(Fs[q], W[q], mu, lam)
+
+
+def stress_cases():
+    rng = np.random.default_rng(7)
+
+    def rot(a):
+        return np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+
+    cases = {
+        "identity": np.eye(2),
+        "a*I expand": 1.3 * np.eye(2),
+        "a*I shrink": 0.6 * np.eye(2),
+        "-a*I (trace < 0, R = -I)": -0.8 * np.eye(2),
+        "rotation": rot(2.5),
+        "rotated stretch": rot(-0.7) @ np.diag([1.4, 0.8]) @ rot(0.3),
+        "shear": np.array([[1.0, 0.6], [0.0, 1.0]]),
+        "nearly singular (J = 1e-9)": np.array([[1.0, 2.0], [0.5, 1.0 + 1e-9]]),
+        "rank one": np.array([[1.0, 2.0], [0.5, 1.0]]),
+        "J < 0 (reflection)": np.diag([1.0, -0.5]),
+        "J < 0 rotated": rot(0.4) @ np.diag([0.9, -1.2]),
+    }
+    for q in range(10):
+        cases[f"random {q}"] = np.eye(2) + 0.5 * rng.standard_normal((2, 2))
+    return cases
+
+
+def test_stress_reverse_matches_tape():
+    """stress_reverse(F, G) = dP/dF : G (eq 57, second term) vs Tape through stress (eq 9): rel err <= 1e-8.
+
+    Per case: identity, a I, a rotation, shear, nearly singular and rank-one F, J < 0; G random.
+    At F = I also against the closed form 2 mu sym(G) + lam tr(G) I, rel err <= 1e-14.
+    """
+    cases = stress_cases()
+    names = list(cases)
+    M = len(names)
+    mu, lam = 123.4, 56.7
+    rng = np.random.default_rng(8)
+    Fs = ti.Matrix.field(2, 2, ti.f64, shape=M, needs_grad=True)
+    W = ti.Matrix.field(2, 2, ti.f64, shape=M)
+    out = ti.Matrix.field(2, 2, ti.f64, shape=M)
+    loss = ti.field(ti.f64, shape=(), needs_grad=True)
+    Fs.from_numpy(np.stack([cases[k] for k in names]))
+    G = rng.standard_normal((M, 2, 2))
+    W.from_numpy(G)
+    with ti.ad.Tape(loss=loss):
+        stress_functional(Fs, W, loss, mu, lam)
+    stress_adjoint(Fs, W, out, mu, lam)
+    tape, got = Fs.grad.to_numpy(), out.to_numpy()
+    for q, name in enumerate(names):
+        assert rel_err(got[q], tape[q]) <= TOL, name
+    # at F = I the result is linear elasticity's 2 mu sym(G) + lam tr(G) I; the rotation term cancels
+    # the skew part of 2 mu G, so a missing or wrong-signed rotation term shows here
+    q = names.index("identity")
+    linear = mu * (G[q] + G[q].T) + lam * np.trace(G[q]) * np.eye(2)
+    assert rel_err(got[q], linear) <= 1e-14
+    assert rel_err(got[q], 2 * mu * G[q] + lam * np.trace(G[q]) * np.eye(2)) > 1e-3
+
+
+def test_stress_reverse_singular_rotation_is_guarded():
+    """Symmetric zero-trace F (atan2(0, 0): polar angle undefined): finite, rotation term dropped as documented.
+
+    Expected: 2 mu G + lam (cof F : G) cof F + lam (J - 1) cof G, exact to 1e-14.
+    """
+    Fm = np.array([[1.0, 0.3], [0.3, -1.0]])
+    G = np.array([[0.7, -1.1], [0.4, 2.0]])
+    mu, lam = 10.0, 5.0
+    Fs = ti.Matrix.field(2, 2, ti.f64, shape=1)
+    W = ti.Matrix.field(2, 2, ti.f64, shape=1)
+    out = ti.Matrix.field(2, 2, ti.f64, shape=1)
+    Fs.from_numpy(Fm[None])
+    W.from_numpy(G[None])
+    stress_adjoint(Fs, W, out, mu, lam)
+
+    def cof(A):
+        return np.array([[A[1, 1], -A[1, 0]], [-A[0, 1], A[0, 0]]])
+
+    J = np.linalg.det(Fm)
+    expected = 2 * mu * G + lam * np.sum(cof(Fm) * G) * cof(Fm) + lam * (J - 1) * cof(G)
+    assert rel_err(out.to_numpy()[0], expected) <= 1e-14
+
+
+# ------------------------------------------------------------------ loss seeds
+def loss_specs(rng):
+    """Loss grids of every kind: mass 16 and 8 with weights and a penalty grid alpha (eq 11, 72), log mass
+    with alpha, color (eq 13; ColorLoss takes no alpha)."""
+    t16 = rng.uniform(0.0, 2.0, (16, 16)) * 1e-3
+    t8 = rng.uniform(0.0, 2.0, (8, 8)) * 4e-3
+    a16 = rng.uniform(1.0, 4.0, (16, 16))
+    c16 = rng.uniform(0.0, 1.0, (16, 16, 3)) * 1e-3
+    colors = rng.uniform(0.0, 1.0, (N_PARTICLES, 3))
+    grids = (MassLoss([t16, t8], weights=[2.0, 0.5], alpha=[a16, None]).grids
+             + MassLoss([t16], alpha=[a16], log=True).grids
+             + ColorLoss([c16], colors=colors, weights=[1.5]).grids)
+    return grids, colors
+
+
+LOSS_GRIDS = ["mass 16 alpha w=2", "mass 8 w=0.5", "log mass 16 alpha", "color 16 w=1.5"]
+
+
+@pytest.fixture(scope="module")
+def loss_pair():
+    rng = np.random.default_rng(21)
+    grids, colors = loss_specs(rng)
+    pair = Pair(SimConfig(**KERNEL_CFG), loss_grids=grids, position_loss=True, colors=True)
+    target_x = rng.uniform(0.2, 0.8, (N_PARTICLES, 2))
+    for st in (pair.t, pair.s):
+        for g, spec in zip(st.loss_grids, grids):
+            g.target.from_numpy(spec.target)
+            if spec.alpha is not None:
+                g.alpha.from_numpy(spec.alpha)
+        st.color.from_numpy(colors)
+        st.target_x.from_numpy(target_x)
+    pair.randomize(rng)
+    # a few particles near the domain edges, so loss-grid nodes beyond the domain are dropped (splat)
+    x = pair.s.x.to_numpy()
+    x[:, :4] = [(0.04, 0.5), (0.97, 0.2), (0.5, 0.03), (0.96, 0.98)]
+    pair.put("x", x)
+    return pair
+
+
+def run_loss_tape(pair, f, grids, position):
+    t = pair.t
+    for g in t.loss_grids:
+        g.m.fill(0.0)
+    with ti.ad.Tape(loss=t.loss):
+        for gi in grids:
+            losses.splat(t, t.loss_grids[gi], f)
+            losses.grid_loss(t, t.loss_grids[gi])
+        if position:
+            losses.position_loss(t, f)
+    return t.x.grad.to_numpy()[f], t.loss[None]
+
+
+@pytest.mark.parametrize("gi", range(len(LOSS_GRIDS)), ids=LOSS_GRIDS)
+def test_grid_loss_seed_matches_tape(loss_pair, gi):
+    """grid_loss_reverse (eq 41, 72; log: r / (m + 1)) and splat_reverse (eq 42-43) vs Tape on splat + grid_loss.
+
+    dL/dm_i per node and dL/dx_p^{N_t}, rel err <= 1e-8; the kernels' own loss agrees with a numpy one.
+    """
+    pair, f = loss_pair, 3
+    tape_x, tape_loss = run_loss_tape(pair, f, [gi], position=False)
+    s, a = pair.s, pair.a
+    g, tg = s.loss_grids[gi], pair.t.loss_grids[gi]
+    g.m.fill(0.0)
+    losses.splat(s, g, f)
+    rng = np.random.default_rng(gi)
+    b = pair.prefill(rng, ["adj_x"], {"adj_x": np.stack([tape_x] * 2)})
+    grid_loss_reverse(s, g)
+    splat_reverse(s, g, a, f)
+
+    assert max_rel_err(g.adj_m.to_numpy(), tg.m.grad.to_numpy()) <= TOL
+    assert rel_err(a.adj_x.to_numpy()[f % 2] - b["adj_x"][f % 2], tape_x) <= TOL
+    assert np.array_equal(a.adj_x.to_numpy()[1 - f % 2], b["adj_x"][1 - f % 2])
+    # the loss value itself (eq 11, 13, 72 and the log mass loss), from the splatted grid
+    m, target = g.m.to_numpy(), g.target.to_numpy()
+    r = np.log(m + 1) - np.log(target + 1) if g.kind == "log_mass" else m - target
+    alpha = g.alpha.to_numpy()[..., None] if g.has_alpha else 1.0
+    assert rel_err(tape_loss, 0.5 * g.weight * np.sum(alpha * r ** 2)) <= 1e-12
+
+
+def test_position_loss_seed_matches_tape(loss_pair):
+    """position_loss_reverse: dL/dx_p = x_p - x_pu (eq 10) vs Tape on position_loss, rel err <= 1e-8."""
+    pair, f = loss_pair, 3
+    tape_x, _ = run_loss_tape(pair, f, [], position=True)
+    b = pair.prefill(np.random.default_rng(5), ["adj_x"], {"adj_x": np.stack([tape_x] * 2)})
+    position_loss_reverse(pair.s, pair.a, f)
+    assert rel_err(pair.a.adj_x.to_numpy()[f % 2] - b["adj_x"][f % 2], tape_x) <= TOL
+    expected = pair.s.x.to_numpy()[f] - pair.s.target_x.to_numpy()
+    assert rel_err(tape_x, expected) <= 1e-14
+
+
+def test_seed_sums_every_loss_and_zeroes_the_rest(loss_pair):
+    """seed() zeroes both particle slots and dL/dv_i, then sums every grid's and the position term's dL/dx
+    (eq 41-43, 10); dL/dv, dL/dF, dL/dC of step N_t are zero (eq 44-46). Rel err <= 1e-8 against one Tape of
+    the full loss; the other slot, where reverse step N_t - 1 accumulates, must be exactly zero."""
+    pair, f = loss_pair, 3
+    tape_x, _ = run_loss_tape(pair, f, range(len(LOSS_GRIDS)), position=True)
+    s, a = pair.s, pair.a
+    for g in s.loss_grids:
+        g.m.fill(0.0)
+        losses.splat(s, g, f)
+    pair.prefill(np.random.default_rng(6), ["adj_x", "adj_v", "adj_C", "adj_F", "adj_grid_v"],
+                     {"adj_x": np.ones((2, pair.N, 2)), "adj_v": np.ones((2, pair.N, 2)),
+                      "adj_C": np.ones((2, pair.N, 2, 2)), "adj_F": np.ones((2, pair.N, 2, 2)),
+                      "adj_grid_v": np.ones((pair.n, pair.n, 2))})
+    seed(s, a, f)
+    slot = f % 2
+    assert rel_err(a.adj_x.to_numpy()[slot], tape_x) <= TOL
+    assert np.all(a.adj_x.to_numpy()[1 - slot] == 0.0)
+    for name in ("adj_v", "adj_C", "adj_F"):
+        assert np.all(getattr(a, name).to_numpy() == 0.0), name
+    assert np.all(a.adj_grid_v.to_numpy() == 0.0)

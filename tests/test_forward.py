@@ -1,0 +1,291 @@
+"""Forward simulation (thesis section 3 and 6.1, eq 8-9, 14-21): conservation, exact motions, the fixed-corotated
+stress, and the errors the simulator and SimConfig raise."""
+import numpy as np
+import pytest
+import taichi as ti
+from scipy.linalg import polar
+
+import mls_mpm
+from conftest import blob, random_controls, rel_err, scene_config
+from mls_mpm.material import stress
+
+
+def rigid_velocity(x, omega=1.0, u=(0.3, -0.2), center=(0.5, 0.5)):
+    """v = u + omega e_z x (x - center): a translation plus a rotation."""
+    r = x - np.asarray(center)
+    return np.asarray(u) + omega * np.stack([-r[:, 1], r[:, 0]], axis=1)
+
+
+def make_sim(cfg, x0):
+    """A simulator, checked to run the schedule cfg asks for: "serial" (one launch, serial loops) or "parallel"
+    (on a CPU: each thread scatters into its own private grid, "lanes", summed by the grid loop)."""
+    sim = mls_mpm.Simulator(cfg, x0)
+    if cfg.schedule == "parallel":
+        assert sim.fields.lanes == cfg.lanes(len(x0)) >= 1
+    else:
+        assert cfg.serial(len(x0)) and sim.fields.lanes == 0
+    return sim
+
+
+@pytest.fixture(scope="module", params=["serial", "parallel"])
+def free_sim(request):
+    """No gravity, no drag, far from the walls: nothing external acts (walls start 3 cells from the edge; the
+    disk spans [0.35, 0.65] and moves < 0.02 in 30 steps). Both schedules."""
+    cfg = scene_config(gravity=(0.0, 0.0), gamma=0.0, schedule=request.param)
+    return make_sim(cfg, blob())
+
+
+def test_grid_mass_equals_particle_mass(free_sim):
+    """sum_i m_i^n = sum_p m_p = N m_p at every step (eq 15; the B-spline weights sum to 1): rel err <= 1e-13."""
+    sim = free_sim
+    x0 = blob()
+    sim.set_initial(x0, v=rigid_velocity(x0))
+    sim.forward(random_controls(sim.control_shape, 0.05, seed=4))
+    total = sim.n_particles * sim.cfg.m_p
+    grid_m = sim.fields.grid_m.to_numpy()
+    assert grid_m.shape[0] == sim.cfg.steps
+    for f in range(sim.cfg.steps):
+        assert rel_err(grid_m[f].sum(), total) <= 1e-13, f
+    assert np.all(grid_m >= 0.0)
+
+
+def test_momentum_is_conserved(free_sim):
+    """Without gravity, drag and walls, sum_p m_p v_p^n is the same at every step n (eq 16-18: APIC with MLS
+    forces exchanges momentum only between particles), and equals the grid momentum sum_i p_i^n (eq 16) and
+    sum_i m_i v_i^n (eq 17). Internal forces are large here: random controls of size 0.05 and a spinning body.
+    Tolerance: 1e-12 of sum_p m_p |v_p|."""
+    sim = free_sim
+    x0 = blob()
+    sim.set_initial(x0, v=rigid_velocity(x0))
+    sim.forward(random_controls(sim.control_shape, 0.05, seed=5))
+    m_p, T = sim.cfg.m_p, sim.cfg.steps
+    P0 = m_p * sim.state(0)["v"].sum(axis=0)
+    scale = m_p * np.linalg.norm(sim.state(0)["v"], axis=1).sum()
+    grid_m = sim.fields.grid_m.to_numpy()
+    grid_p = sim.fields.grid_p.to_numpy()
+    grid_v = sim.fields.grid_v.to_numpy()
+    moved = 0.0
+    for f in range(T + 1):
+        v = sim.state(f)["v"]
+        P = m_p * v.sum(axis=0)
+        assert np.linalg.norm(P - P0) <= 1e-12 * scale, f
+        if f < T:
+            assert np.linalg.norm(grid_p[f].sum(axis=(0, 1)) - P) <= 1e-12 * scale, f
+            assert np.linalg.norm((grid_m[f][..., None] * grid_v[f]).sum(axis=(0, 1)) - P) <= 1e-12 * scale, f
+        moved = max(moved, np.abs(v - sim.state(0)["v"]).max())
+    assert moved > 0.1  # the velocities did change: the conservation is not trivial
+    x = sim.state(T)["x"]
+    lo, hi = 4 * sim.cfg.dx, 1 - 5 * sim.cfg.dx  # every stencil stayed off the wall zone (bound = 3)
+    assert np.all((x > lo) & (x < hi))
+
+
+def test_body_at_rest_stays_at_rest(free_sim):
+    """F = I, v = 0, C = 0, zero controls, no gravity: P(I) = 0 (eq 9) so nothing moves: x^n = x^0 and
+    v^n = 0 to 1e-12 at every step."""
+    sim = free_sim
+    x0 = blob()
+    sim.set_initial(x0)
+    sim.forward(sim.zero_controls())
+    for f in (1, sim.cfg.steps // 2, sim.cfg.steps):
+        st = sim.state(f)
+        assert np.abs(st["x"] - x0).max() <= 1e-12
+        assert np.abs(st["v"]).max() <= 1e-12
+        assert np.abs(st["F"] - np.eye(2)).max() <= 1e-12
+
+
+def test_free_fall_with_drag():
+    """F = I, zero controls, gravity g, drag gamma: the body falls as one, every particle exactly as
+    v^{n+1} = (1 - dt gamma) v^n + dt g (eq 16-18 plus gravity), x^{n+1} = x^n + dt v^{n+1} (eq 21),
+    with C = 0 and F = I (eq 19-20). Tolerance: 1e-12 absolute (velocities ~0.3, positions ~0.5)."""
+    cfg = scene_config(gamma=5.0, gravity=(1.5, -9.8))
+    x0 = blob()
+    sim = mls_mpm.Simulator(cfg, x0)
+    sim.forward(sim.zero_controls())
+    g = np.asarray(cfg.gravity)
+    v = np.zeros(2)
+    x = x0.copy()
+    for f in range(1, cfg.steps + 1):
+        v = (1.0 - cfg.dt * cfg.gamma) * v + cfg.dt * g
+        x = x + cfg.dt * v
+        st = sim.state(f)
+        assert np.abs(st["v"] - v).max() <= 1e-12, f
+        assert np.abs(st["x"] - x).max() <= 1e-12, f
+        assert np.abs(st["C"]).max() <= 1e-10, f
+        assert np.abs(st["F"] - np.eye(2)).max() <= 1e-12, f
+    assert np.linalg.norm(v) > 0.2
+
+
+# ------------------------------------------------------------------ one step against a numpy transcription
+def spline(t):
+    """Cubic B-spline N(t) (eq 1-2): |t|^3 / 2 - t^2 + 2/3 on |t| < 1, (2 - |t|)^3 / 6 on 1 <= |t| < 2."""
+    t = np.abs(t)
+    return np.where(t < 1, 0.5 * t ** 3 - t ** 2 + 2 / 3, np.where(t < 2, (2 - t) ** 3 / 6, 0.0))
+
+
+def fixed_corotated(F, mu, lam):
+    R, _ = polar(F)
+    J = np.linalg.det(F)
+    return 2 * mu * (F - R) + lam * (J - 1) * J * np.linalg.inv(F).T
+
+
+def reference_step(cfg, st, F_pc):
+    """Eq 14-21 with gravity, drag and walls, written from the thesis in numpy: grid (m, v) of the step and
+    the particle state (x, v, C, F) of the next one. F_pc: the control acting at this step, or None."""
+    n, dx, inv_dx, dt, m_p = cfg.n_grid, cfg.dx, cfg.inv_dx, cfg.dt, cfg.m_p
+    x, v, C, F = st["x"], st["v"], st["C"], st["F"]
+    Fs = F + F_pc if F_pc is not None else F  # eq 8, 14
+    P = np.stack([fixed_corotated(Fp, cfg.mu, cfg.lam) for Fp in Fs])
+    G = -3 * inv_dx ** 2 * dt * cfg.vol * P @ np.swapaxes(Fs, 1, 2) + m_p * C  # eq 61
+    base = np.floor(x * inv_dx).astype(int) - 1
+    stencil = []
+    for i in range(4):
+        for j in range(4):
+            node = base + (i, j)
+            dpos = node * dx - x  # x_i - x_p
+            N = spline(dpos[:, 0] * inv_dx) * spline(dpos[:, 1] * inv_dx)
+            stencil.append((node, dpos, N))
+    grid_m, grid_p = np.zeros((n, n)), np.zeros((n, n, 2))
+    for node, dpos, N in stencil:
+        np.add.at(grid_m, (node[:, 0], node[:, 1]), N * m_p)  # eq 15
+        mom = m_p * v * (1 - dt * cfg.gamma) + np.einsum("pab,pb->pa", G, dpos)  # eq 16
+        np.add.at(grid_p, (node[:, 0], node[:, 1]), N[:, None] * mom)
+    live = grid_m > 1e-10 * m_p
+    grid_v = np.zeros((n, n, 2))
+    grid_v[live] = grid_p[live] / grid_m[live][:, None] + dt * np.asarray(cfg.gravity)  # eq 17 + gravity
+    idx = np.arange(n)
+    for d in range(2):
+        low = np.broadcast_to((idx < cfg.bound)[:, None] if d == 0 else (idx < cfg.bound)[None, :], (n, n))
+        high = np.broadcast_to((idx > n - 1 - cfg.bound)[:, None] if d == 0 else (idx > n - 1 - cfg.bound)[None, :],
+                               (n, n))
+        if cfg.boundary == "sticky":
+            grid_v[low | high] = 0.0
+        else:
+            vd = grid_v[..., d].copy()
+            grid_v[..., d] = np.where((low & (vd < 0)) | (high & (vd > 0)), 0.0, vd)
+    v_new, C_new = np.zeros_like(v), np.zeros_like(C)
+    for node, dpos, N in stencil:
+        vi = grid_v[node[:, 0], node[:, 1]]
+        v_new += N[:, None] * vi  # eq 18
+        C_new += 3 * inv_dx ** 2 * N[:, None, None] * np.einsum("pa,pb->pab", vi, dpos)  # eq 19
+    F_new = (np.eye(2) + dt * C_new) @ Fs  # eq 20
+    return grid_m, grid_v, {"x": x + dt * v_new, "v": v_new, "C": C_new, "F": F_new}  # eq 21
+
+
+@pytest.mark.parametrize("boundary, schedule", [("slip", "serial"), ("sticky", "parallel")])
+def test_step_matches_thesis_equations(boundary, schedule):
+    """Steps 0 and 10 (controls 0 and 1 act) and step 5 (no control) against reference_step, a numpy
+    transcription of eq 14-21 plus gravity, drag (gamma = 5) and walls, under both schedules (slip walls with
+    the serial one, sticky with the parallel one): rel err <= 1e-12 on grid mass and
+    velocity and on the next x, v, C, F. The body starts near the floor moving down with random C and F, so the
+    wall zone (3 cells) is hit within the first steps."""
+    cfg = scene_config(gamma=5.0, gravity=(1.5, -9.8), boundary=boundary, schedule=schedule)
+    x0 = blob(center=(0.45, 0.2), radius=0.1)
+    rng = np.random.default_rng(12)
+    N = len(x0)
+    sim = make_sim(cfg, x0)
+    sim.set_initial(x0, v=rigid_velocity(x0, omega=2.0, u=(0.5, -1.5), center=(0.45, 0.2)),
+                    C=2.0 * rng.standard_normal((N, 2, 2)), F=np.eye(2) + 0.1 * rng.standard_normal((N, 2, 2)))
+    controls = random_controls(sim.control_shape, 0.05, seed=13)
+    sim.forward(controls)
+    grid_m = sim.fields.grid_m.to_numpy()
+    grid_v = sim.fields.grid_v.to_numpy()
+    walled = 0
+    for f in (0, 5, 10):
+        k, acts = divmod(f, cfg.stride)
+        m_ref, v_ref, nxt = reference_step(cfg, sim.state(f), controls[k] if acts == 0 else None)
+        assert rel_err(grid_m[f], m_ref) <= 1e-12, f
+        assert rel_err(grid_v[f], v_ref) <= 1e-12, f
+        got = sim.state(f + 1)
+        for key in ("x", "v", "C", "F"):
+            assert rel_err(got[key], nxt[key]) <= 1e-12, (f, key)
+        b = cfg.bound
+        wall = np.zeros(grid_m[f].shape, bool)
+        wall[:b] = wall[-b:] = wall[:, :b] = wall[:, -b:] = True
+        walled += np.count_nonzero(wall & (grid_m[f] > 1e-10 * cfg.m_p))
+    assert walled > 0  # the walls took part
+
+
+# ------------------------------------------------------------------ the material
+@ti.kernel
+def stress_kernel(Fs: ti.template(), out: ti.template(), mu: ti.f64, lam: ti.f64):
+    for q in Fs:
+        out[q] = stress(Fs[q], mu, lam)
+
+
+def test_fixed_corotated_stress():
+    """P(F) = 2 mu (F - R) + lam (J - 1) J F^{-T} (eq 9) with R from scipy's polar decomposition, for F with
+    J > 0 (where the polar rotation is a proper rotation): rel err <= 1e-12; P(R) = 0 for any rotation R."""
+    rng = np.random.default_rng(9)
+    Fs = [np.eye(2) + 0.4 * rng.standard_normal((2, 2)) for _ in range(20)]
+    Fs = [F for F in Fs if np.linalg.det(F) > 0.05]
+    Fs += [1.3 * np.eye(2), np.array([[1.0, 0.8], [0.0, 1.0]])]
+    t = 2.2
+    rotation = np.array([[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]])
+    Fs.append(rotation)
+    mu, lam = 41.7, 27.8
+    field = ti.Matrix.field(2, 2, ti.f64, shape=len(Fs))
+    out = ti.Matrix.field(2, 2, ti.f64, shape=len(Fs))
+    field.from_numpy(np.stack(Fs))
+    stress_kernel(field, out, mu, lam)
+    P = out.to_numpy()
+    for q, F in enumerate(Fs[:-1]):
+        R, _ = polar(F)
+        J = np.linalg.det(F)
+        expected = 2 * mu * (F - R) + lam * (J - 1) * J * np.linalg.inv(F).T
+        assert rel_err(P[q], expected) <= 1e-12, q
+    assert np.abs(P[-1]).max() <= 1e-12
+
+
+# ------------------------------------------------------------------ errors
+@pytest.mark.parametrize("schedule", ["serial", "parallel"])
+def test_particle_leaving_the_grid_raises(schedule):
+    """A particle thrown at -300 in x covers 0.3 of the domain in one step of dt = 1e-3 and lands outside the
+    grid: SimulationError naming step 1 and that particle (index 17), not a neighbour; both schedules."""
+    x0 = blob()
+    x0 = np.insert(x0, 17, [0.2, 0.5], axis=0)  # alone: its stencil shares no node with the disk
+    v0 = np.zeros_like(x0)
+    v0[17] = (-300.0, 0.0)
+    sim = make_sim(scene_config(gravity=(0.0, 0.0), schedule=schedule), x0)
+    sim.set_initial(x0, v=v0)
+    with pytest.raises(mls_mpm.SimulationError, match=r"step 1: particle 17 left the simulation grid"):
+        sim.forward(sim.zero_controls())
+
+
+def test_nan_control_raises(free_sim):
+    """A NaN in F_pc is refused before any step runs: ValueError naming the control (and its step) and the
+    particle."""
+    c = free_sim.zero_controls()
+    c[1, 5, 0, 1] = np.nan
+    with pytest.raises(ValueError, match=r"control 1 \(step 10\), particle 5 holds NaN"):
+        free_sim.forward(c)
+    c[1, 5, 0, 1] = 0.0
+    c[2, 0, 1, 1] = np.inf
+    with pytest.raises(ValueError, match=r"control 2 \(step 20\), particle 0 holds NaN or Inf"):
+        free_sim.forward(c)
+
+
+@pytest.mark.parametrize("change, name", [
+    (dict(steps=0), "steps"),
+    (dict(dt=0.0), "dt"),
+    (dict(dt=-1e-3), "dt"),
+    (dict(dt=float("nan")), "dt"),
+    (dict(nu=0.5), "nu"),
+    (dict(nu=-0.1), "nu"),
+    (dict(gamma=1000.0, dt=1e-3), "gamma \\* dt"),
+    (dict(gamma=-1.0), "gamma"),
+    (dict(stride=31, steps=30), "stride"),
+    (dict(n_grid=9, bound=3), "n_grid"),
+    (dict(boundary="periodic"), "boundary"),
+    (dict(E=0.0), "E"),
+])
+def test_config_rejects_bad_values(change, name):
+    """SimConfig refuses values the simulator cannot use, with a ConfigError naming the setting:
+    steps = 0, dt <= 0 or NaN, nu outside [0, 0.5), gamma dt >= 1 (eq 16's factor 1 - dt gamma would flip sign),
+    stride > steps, n_grid < 2 bound + 4 (no node outside the walls for a 4x4 stencil)."""
+    with pytest.raises(mls_mpm.ConfigError, match=f"^{name} = "):
+        mls_mpm.SimConfig(**{**dict(n_grid=32, steps=30, dt=1e-3, E=100.0), **change})
+
+
+def test_config_accepts_the_limits():
+    """The boundary values just inside the limits are accepted (a refusal off by one would show here)."""
+    mls_mpm.SimConfig(n_grid=10, bound=3, steps=30, stride=30, dt=1e-3, E=100.0, nu=0.0, gamma=999.0)
