@@ -2,10 +2,14 @@
 
     python benchmarks/render_speed.py [--arch cpu] [--size 512] [--n-grid 64] [--every 5] [--repeats 20]
 
-Renders ~8k particles (a 45 x 45 cell block at 4 particles per cell on a 64^2 grid) in each mode, and times
-`Simulator.forward` over `every` steps (the steps between two saved frames). Compile time is excluded.
+Renders ~8k particles (a 45 x 45 cell block at 4 particles per cell on a 64^2 grid) in each mode, times
+`FrameWriter.write` of the rendered mass and color frames (PNG encoding and the atomic file write), and times
+`Simulator.forward` over `every` steps (the steps between two saved frames). Compile time is excluded; each
+figure is the median of `repeats` calls: wall time, and in brackets the process CPU time (all threads), which
+other work on a shared machine disturbs less (on an idle machine, wall ~ CPU / threads for parallel kernels).
 """
 import argparse
+import tempfile
 import time
 
 import numpy as np
@@ -13,6 +17,7 @@ import taichi as ti
 
 import mls_mpm
 from mls_mpm import runtime
+from mls_mpm.frames import FRAME_NAME, FrameWriter
 from mls_mpm.render import Renderer
 
 
@@ -24,16 +29,17 @@ def block_particles(cfg, cells=45, lo=0.15):
 
 
 def best_ms(fn, repeats):
-    """Median wall time of fn() in ms after one warm-up call (compilation)."""
+    """Median wall time and median process CPU time of fn() in ms, after one warm-up call (compilation)."""
     fn()
     ti.sync()
-    times = []
+    wall, cpu = [], []
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         fn()
         ti.sync()
-        times.append(time.perf_counter() - t0)
-    return 1e3 * float(np.median(times))
+        wall.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+    return 1e3 * float(np.median(wall)), 1e3 * float(np.median(cpu))
 
 
 def main(argv=None):
@@ -58,18 +64,28 @@ def main(argv=None):
     target[16:48, 16:48] = cfg.density * cfg.dx ** 2
     print(f"{len(x)} particles, {cfg.n_grid}^2 grid, {args.size}^2 pixels, arch {args.arch}, {args.dtype}")
 
+    frames = {}
     for mode, extra in (("mass", {}), ("color", {"colors": colors}), ("particles", {}),
                         ("particles", {"F": F}), ("mass", {"target_outline": target})):
         r = Renderer(cfg.n_grid, len(x), args.size, cfg.density * cfg.dx ** 2, mode,
                      body_outline="target_outline" in extra)
-        ms = best_ms(lambda: r.render(x, cfg.m_p, **extra), args.repeats)
+        ms, cpu = best_ms(lambda: r.render(x, cfg.m_p, **extra), args.repeats)
         what = mode + "".join(f" +{k}" for k in extra if k != "colors")
-        print(f"render {what:<28s} {ms:8.2f} ms/frame")
+        print(f"render {what:<28s} {ms:8.2f} ms/frame  (cpu {cpu:.2f} ms)")
+        frames.setdefault(mode, r.render(x, cfg.m_p, **extra))
+
+    with tempfile.TemporaryDirectory() as out:
+        writer = FrameWriter(out)
+        for mode in ("mass", "color"):
+            ms, cpu = best_ms(lambda: writer.write(frames[mode]), args.repeats)
+            size = (writer.frames_dir / FRAME_NAME.format(writer.count - 1)).stat().st_size
+            print(f"FrameWriter.write {mode + ' frame':<17s} {ms:8.2f} ms/frame  (cpu {cpu:.2f} ms, "
+                  f"{size / 1024:.0f} KiB PNG)")
 
     sim = mls_mpm.Simulator(cfg, x)
     controls = sim.zero_controls()
-    ms = best_ms(lambda: sim.forward(controls), args.repeats)
-    print(f"simulate {args.every} steps (one frame)  {ms:8.2f} ms  ({ms / args.every:.2f} ms/step)")
+    ms, cpu = best_ms(lambda: sim.forward(controls), args.repeats)
+    print(f"simulate {args.every} steps (one frame)  {ms:8.2f} ms  (cpu {cpu:.2f} ms; {ms / args.every:.2f} ms/step)")
     return 0
 
 

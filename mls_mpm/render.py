@@ -2,7 +2,11 @@
 
 A `Renderer` is built once per run; it owns its fields and renders one frame at a time from numpy arrays.
 Pixels sample the fields with the simulation's own cubic B-spline basis (`kernels.stencil`, `kernels.weights`):
-m(x) = sum_i N(x - x_i) m_i, the "fragment shader" of thesis 7.1.
+m(x) = sum_i N(x - x_i) m_i, the "fragment shader" of thesis 7.1. N(x) = N1(x0/dx) N1(x1/dx) is separable, so
+the sum runs in two passes: along x once per pixel column onto every grid line (`sample_columns`), then along y
+per pixel (`sample_pixel`), 4 + 4 multiply-adds instead of 16 per pixel. A mass or color frame is one kernel
+launch (P2G, both passes and the shading) painting a white numpy array that is returned as the frame; pixels
+whose stencils reach no node with mass are exactly 0 and skip the sampling (`live_box`).
 
 Images are uint8 (size, size, 3) arrays indexed [row, column]; the y axis points up like the domain's, so
 row 0 is y = 1 and column 0 is x = 0. Pixel (r, c) samples the domain point ((c + 1/2) / size, 1 - (r + 1/2) / size).
@@ -76,16 +80,28 @@ def pixel_center(r, c, size):
 
 
 @ti.func
-def interpolate(grid: ti.template(), X, inv_dx):
-    """sum_i N(X - x_i) g_i over the 4x4 nodes around X (eq 1-2), nodes off the grid dropped."""
+def axis_stencil(X, inv_dx, axis, n):
+    """The 4 nodes around X along one axis and their 1D weights N1 (eq 2), for a grid of n nodes per axis.
+
+    Nodes off the grid get weight 0 and an index clamped onto it, so that a sum over the 4 drops them
+    without a branch (grid values are finite, so 0 * g_i adds exactly 0).
+    """
     base, fx = stencil(X, inv_dx)
     w, _ = weights(fx)
-    acc = grid[0, 0] * 0.0
-    for i, j in ti.static(ti.ndrange(STENCIL, STENCIL)):
-        I = base + ti.Vector([i, j])
-        if 0 <= I[0] < grid.shape[0] and 0 <= I[1] < grid.shape[1]:
-            acc += w[i, 0] * w[j, 1] * grid[I]
-    return acc
+    I = ti.Vector([0] * STENCIL)
+    W = ti.Vector([0.0] * STENCIL, dt=float)
+    for k in ti.static(range(STENCIL)):
+        i = base[axis] + k
+        I[k] = ti.min(ti.max(i, 0), n - 1)
+        W[k] = ti.select(0 <= i < n, w[k, axis], 0.0)
+    return I, W
+
+
+@ti.func
+def clear(grid: ti.template()):
+    """Zero a scalar or vector field (a parallel loop of the calling kernel)."""
+    for I in ti.grouped(grid):
+        grid[I] = ti.zero(grid[I])
 
 
 @ti.func
@@ -100,13 +116,80 @@ def scatter(grid: ti.template(), X, inv_dx, value):
 
 
 @ti.func
+def sample_columns(grid: ti.template(), line: ti.template(), inv_dx):
+    """First pass of the separable interpolation m(x) = sum_i N1(x0/dx - i0) N1(x1/dx - i1) m_i (eq 1-2):
+    line[j, c] = sum_i0 N1(x0/dx - i0) g[i0, j], the field along grid line y = j dx at pixel column c's x."""
+    size = line.shape[1]
+    for c in range(size):
+        I, W = axis_stencil(pixel_center(0, c, size), inv_dx, 0, grid.shape[0])
+        for j in range(grid.shape[1]):
+            acc = W[0] * grid[I[0], j]
+            for k in ti.static(range(1, STENCIL)):
+                acc += W[k] * grid[I[k], j]
+            line[j, c] = acc
+
+
+@ti.func
+def row_stencil(r, line: ti.template(), inv_dx):
+    """The 4 grid lines J around pixel row r and their weights W (`axis_stencil` along y)."""
+    return axis_stencil(pixel_center(r, 0, line.shape[1]), inv_dx, 1, line.shape[0])
+
+
+@ti.func
+def sample_pixel(line: ti.template(), c, J, W):
+    """Second pass: sum_j N1(x1/dx - j) line[j, c] over the 4 grid lines J around the pixel's row."""
+    acc = W[0] * line[J[0], c]
+    for k in ti.static(range(1, STENCIL)):
+        acc += W[k] * line[J[k], c]
+    return acc
+
+
+@ti.func
+def sample_rows(line: ti.template(), inv_dx, scale, out: ti.template()):
+    """out[r, c] = scale * sum_j N1(x1/dx - j) line[j, c] at every pixel: the second pass for all rows."""
+    for r in range(out.shape[0]):
+        J, W = row_stencil(r, line, inv_dx)
+        for c in range(out.shape[1]):
+            out[r, c] = scale * sample_pixel(line, c, J, W)
+
+
+@ti.func
+def live_box(grid: ti.template(), box: ti.template(), inv_dx, size):
+    """box = (first row, last row, first column, last column) of the pixels whose stencils reach a node of
+    grid holding mass (first > last: none). Elsewhere m(x) is a sum of zero terms, exactly 0, so the frame
+    kernels write 0 there without sampling. One thread: a scan of the grid and 2 x size 1D stencils."""
+    for _ in range(1):
+        lo = ti.Vector([grid.shape[0], grid.shape[1]])  # bounding box of the nodes holding mass
+        hi = ti.Vector([-1, -1])
+        for i, j in ti.ndrange(grid.shape[0], grid.shape[1]):
+            if grid[i, j] != 0.0:
+                lo = ti.min(lo, ti.Vector([i, j]))
+                hi = ti.max(hi, ti.Vector([i, j]))
+        first = ti.Vector([size, size])  # [column, row] ranges; rows are monotone in y like columns in x
+        last = ti.Vector([-1, -1])
+        for p in range(size):
+            X = pixel_center(p, p, size)  # the x of column p and the y of row p
+            for a in ti.static(range(2)):
+                I, W = axis_stencil(X, inv_dx, a, grid.shape[a])
+                reach = 0
+                for k in ti.static(range(STENCIL)):
+                    reach |= W[k] > 0.0 and lo[a] <= I[k] <= hi[a]
+                if reach:
+                    first[a] = ti.min(first[a], p)
+                    last[a] = ti.max(last[a], p)
+        box[0], box[1], box[2], box[3] = first[1], last[1], first[0], last[0]
+
+
+@ti.func
 def position_on_path(t, e, low, mid, high):
-    """Ti.func twin of `path_position`: piecewise linear, clamped to [0, 3]."""
+    """Ti.func twin of `path_position`: piecewise linear, clamped to [0, 3].
+
+    t >= high shares the green..red piece, clamped to s = 3 (the same value as a separate branch), so that
+    masses fluctuating around `high` inside a body at rest do not flip a branch from pixel to pixel.
+    """
     s = 0.0
-    if t >= high:
-        s = 3.0
-    elif t >= mid:
-        s = 2.0 + (t - mid) / (high - mid)
+    if t >= mid:
+        s = 2.0 + ti.min((t - mid) / (high - mid), 1.0)
     elif t >= low:
         s = 1.0 + (t - low) / (mid - low)
     elif t > e:
@@ -116,18 +199,16 @@ def position_on_path(t, e, low, mid, high):
 
 @ti.func
 def palette(s):
-    """Ti.func twin of `path_color`: white, blue, green, red at s = 0, 1, 2, 3, linear in between."""
+    """Ti.func twin of `path_color`: white, blue, green, red at s = 0, 1, 2, 3, linear in between (s <= 3)."""
     white = ti.Vector(WHITE, dt=float)
     blue = ti.Vector(BLUE, dt=float)
     green = ti.Vector(GREEN, dt=float)
     red = ti.Vector(RED, dt=float)
-    color = red
+    color = green + (red - green) * (s - 2.0)  # red at s = 3
     if s < 1.0:
         color = white + (blue - white) * s
     elif s < 2.0:
         color = blue + (green - blue) * (s - 1.0)
-    elif s < 3.0:
-        color = green + (red - green) * (s - 2.0)
     return color
 
 
@@ -137,56 +218,105 @@ def to_u8(color):
     return ti.cast(ti.math.clamp(color, 0.0, 1.0) * 255.0 + 0.5, ti.u8)
 
 
-@ti.kernel
-def p2g_mass(grid_m: ti.template(), inv_dx: float, x: ti.types.ndarray(), m: ti.types.ndarray(), n: ti.i32):
-    """m_i = sum_p N(x_i - x_p) m_p (eq 15)."""
+@ti.func
+def put(image: ti.types.ndarray(), r, c, rgb):
+    """Write the bytes rgb to pixel (r, c) of a uint8 (size, size, 3) array."""
+    for k in ti.static(range(3)):
+        image[r, c, k] = rgb[k]
+
+
+@ti.func
+def splat_mass(grid_m: ti.template(), inv_dx, x: ti.types.ndarray(), m: ti.types.ndarray(), n):
+    """m_i = sum_p N(x_i - x_p) m_p (eq 15) on a cleared grid. The splat runs on one thread: thousands of
+    particles take less time so than with float atomics, and the sums run in particle order, so a frame's bytes
+    are reproducible."""
+    clear(grid_m)
+    ti.loop_config(serialize=True)
     for p in range(n):
         scatter(grid_m, ti.Vector([x[p, 0], x[p, 1]]), inv_dx, m[p])
 
 
 @ti.kernel
-def p2g_color(grid_m: ti.template(), grid_c: ti.template(), inv_dx: float, x: ti.types.ndarray(),
-              m: ti.types.ndarray(), c: ti.types.ndarray(), n: ti.i32):
-    """m_i as in p2g_mass and the color-mass c_i = sum_p N(x_i - x_p) m_p c_p (eq 12)."""
+def render_mass(grid_m: ti.template(), line_m: ti.template(), box: ti.template(), pixel_m: ti.template(),
+                image: ti.types.ndarray(), inv_dx: float, scale: float, x: ti.types.ndarray(), m: ti.types.ndarray(),
+                n: ti.i32, e: float, low: float, mid: float, high: float):
+    """Thesis 7.1 in one launch: P2G, pixel_m = scale * m(x) sampled in two separable passes, and the
+    colormap (high mass red, medium green, low blue) painted over a white image where pixel_m > empty."""
+    splat_mass(grid_m, inv_dx, x, m, n)
+    sample_columns(grid_m, line_m, inv_dx)
+    live_box(grid_m, box, inv_dx, pixel_m.shape[0])
+    for r in range(pixel_m.shape[0]):
+        J, W = row_stencil(r, line_m, inv_dx)
+        row_live, c0, c1 = box[0] <= r <= box[1], box[2], box[3]
+        for c in range(pixel_m.shape[1]):
+            t = 0.0
+            if row_live and c0 <= c <= c1:
+                t = scale * sample_pixel(line_m, c, J, W)
+            pixel_m[r, c] = t
+            if t > e:  # below, position_on_path is 0: white, as the image starts
+                put(image, r, c, to_u8(palette(position_on_path(t, e, low, mid, high))))
+
+
+@ti.kernel
+def render_color(grid_m: ti.template(), grid_c: ti.template(), line_m: ti.template(), line_c: ti.template(),
+                 box: ti.template(), pixel_m: ti.template(), image: ti.types.ndarray(), inv_dx: float, scale: float,
+                 x: ti.types.ndarray(), m: ti.types.ndarray(), colors: ti.types.ndarray(), n: ti.i32, e: float,
+                 low: float):
+    """Thesis 7.5 in one launch: P2G of m_i and the color-mass c_i = sum_p N(x_i - x_p) m_p c_p (eq 12),
+    both sampled in two separable passes, and c(x) / m(x) faded to white as the normalised mass
+    pixel_m = scale * m(x) falls from `low` to `empty`, painted over a white image."""
+    clear(grid_m)
+    clear(grid_c)
+    ti.loop_config(serialize=True)  # as in splat_mass
     for p in range(n):
         X = ti.Vector([x[p, 0], x[p, 1]])
         scatter(grid_m, X, inv_dx, m[p])
-        scatter(grid_c, X, inv_dx, m[p] * ti.Vector([c[p, 0], c[p, 1], c[p, 2]]))
+        scatter(grid_c, X, inv_dx, m[p] * ti.Vector([colors[p, 0], colors[p, 1], colors[p, 2]]))
+    sample_columns(grid_m, line_m, inv_dx)
+    sample_columns(grid_c, line_c, inv_dx)
+    live_box(grid_m, box, inv_dx, pixel_m.shape[0])  # c_i = 0 where m_i = 0
+    for r in range(pixel_m.shape[0]):
+        J, W = row_stencil(r, line_m, inv_dx)
+        row_live, c0, c1 = box[0] <= r <= box[1], box[2], box[3]
+        for c in range(pixel_m.shape[1]):
+            t = 0.0
+            if row_live and c0 <= c <= c1:
+                t = scale * sample_pixel(line_m, c, J, W)
+            pixel_m[r, c] = t
+            if t > e:  # white below, as the image starts
+                rgb = ti.math.clamp(sample_pixel(line_c, c, J, W) / (t / scale), 0.0, 1.0)  # m(x) > e * rest > 0
+                color = rgb  # the blend below at a = 1
+                if t < low:
+                    a = (t - e) / (low - e)
+                    color = ti.Vector([1.0, 1.0, 1.0]) * (1.0 - a) + rgb * a
+                put(image, r, c, to_u8(color))
 
 
 @ti.kernel
-def sample(grid: ti.template(), inv_dx: float, scale: float, out: ti.template()):
-    """out[r, c] = scale * m(x) at every pixel center: the mass field normalised by the rest node mass."""
-    size = out.shape[0]
-    for r, c in out:
-        out[r, c] = scale * interpolate(grid, pixel_center(r, c, size), inv_dx)
+def mass_field(grid_m: ti.template(), line_m: ti.template(), pixel_m: ti.template(), inv_dx: float, scale: float,
+               x: ti.types.ndarray(), m: ti.types.ndarray(), n: ti.i32):
+    """pixel_m = scale * m(x) of the particles' P2G mass, without shading (the body outline over particles)."""
+    splat_mass(grid_m, inv_dx, x, m, n)
+    sample_columns(grid_m, line_m, inv_dx)
+    sample_rows(line_m, inv_dx, scale, pixel_m)
 
 
 @ti.kernel
-def shade_mass(pixel_m: ti.template(), image: ti.template(), e: float, low: float, mid: float, high: float):
+def sample(grid: ti.template(), line: ti.template(), inv_dx: float, scale: float, out: ti.template()):
+    """out[r, c] = scale * m(x) at every pixel center, in two separable passes through line (size, grid rows)."""
+    sample_columns(grid, line, inv_dx)
+    sample_rows(line, inv_dx, scale, out)
+
+
+@ti.kernel
+def shade_mass(pixel_m: ti.template(), image: ti.types.ndarray(), e: float, low: float, mid: float, high: float):
     """Thesis 7.1: high mass red, medium green, low blue, nearly zero white."""
-    for r, c in image:
-        image[r, c] = to_u8(palette(position_on_path(pixel_m[r, c], e, low, mid, high)))
+    for r, c in pixel_m:
+        put(image, r, c, to_u8(palette(position_on_path(pixel_m[r, c], e, low, mid, high))))
 
 
 @ti.kernel
-def shade_color(grid_c: ti.template(), pixel_m: ti.template(), image: ti.template(), inv_dx: float,
-                inv_rest: float, e: float, low: float):
-    """Thesis 7.5: c(x) / m(x), faded to white as the normalised mass falls from `low` to `empty`."""
-    size = image.shape[0]
-    for r, c in image:
-        t = pixel_m[r, c]
-        color = ti.Vector([1.0, 1.0, 1.0])
-        if t > e:
-            m = t / inv_rest
-            rgb = interpolate(grid_c, pixel_center(r, c, size), inv_dx) / m  # m > e * rest > 0 here
-            a = ti.min((t - e) / (low - e), 1.0)
-            color = color * (1.0 - a) + ti.math.clamp(rgb, 0.0, 1.0) * a
-        image[r, c] = to_u8(color)
-
-
-@ti.kernel
-def draw_particles(image: ti.template(), x: ti.types.ndarray(), F: ti.types.ndarray(), n: ti.i32, radius: float,
+def draw_particles(image: ti.types.ndarray(), x: ti.types.ndarray(), F: ti.types.ndarray(), n: ti.i32, radius: float,
                    max_extent: float, color: ti.types.vector(3, float)):
     """Paint, for each particle, the image under F of a disc of `radius` pixels around it (Fig 3's ellipses).
 
@@ -212,28 +342,33 @@ def draw_particles(image: ti.template(), x: ti.types.ndarray(), F: ti.types.ndar
             for c in range(c0, c1 + 1):
                 d = ti.Vector([ti.cast(c, float) + 0.5 - P[0], P[1] - ti.cast(r, float) - 0.5])
                 if (A_inv @ d).norm() <= radius:
-                    image[r, c] = rgb
+                    put(image, r, c, rgb)
         rc = ti.cast(ti.floor(P), ti.i32)  # a particle thinner than a pixel still shows its own pixel
         if 0 <= rc[0] < size and 0 <= rc[1] < size:
-            image[rc[1], rc[0]] = rgb
+            put(image, rc[1], rc[0], rgb)
 
 
 @ti.kernel
-def draw_outline(field: ti.template(), image: ti.template(), level: float, width: ti.i32,
+def draw_outline(field: ti.template(), image: ti.types.ndarray(), level: float, width: ti.template(),
                  color: ti.types.vector(3, float)):
-    """Pixel-level contour: paint pixels with field >= level that have a pixel below level within `width`."""
-    size = image.shape[0]
+    """Pixel-level contour: paint pixels with field >= level that have a pixel below level within `width`
+    (|dr| + |dc| <= width, pixels of the image only).
+
+    Neighbours are clamped onto the image: a clamped neighbour lies in the same diamond (or is the pixel
+    itself), so clamping checks exactly the neighbours inside the image, without a branch.
+    """
+    size = field.shape[0]
     rgb = to_u8(color)
-    for r, c in field:
-        if field[r, c] >= level:
-            edge = False
-            for dr, dc in ti.ndrange((-width, width + 1), (-width, width + 1)):
-                rr, cc = r + dr, c + dc
-                if 0 <= rr < size and 0 <= cc < size and ti.abs(dr) + ti.abs(dc) <= width:
-                    if field[rr, cc] < level:
-                        edge = True
-            if edge:
-                image[r, c] = rgb
+    for r in range(size):
+        for c in range(size):
+            if field[r, c] >= level:
+                edge = 0
+                for dr in ti.static(range(-width, width + 1)):
+                    rr = ti.min(ti.max(r + dr, 0), size - 1)
+                    for dc in range(abs(dr) - width, width - abs(dr) + 1):
+                        edge |= field[rr, ti.min(ti.max(c + dc, 0), size - 1)] < level
+                if edge:
+                    put(image, r, c, rgb)
 
 
 @ti.kernel
@@ -245,12 +380,6 @@ def colormap_kernel(t: ti.types.ndarray(), s: ti.types.ndarray(), rgb: ti.types.
         color = to_u8(palette(s[k]))
         for d in ti.static(range(3)):
             rgb[k, d] = color[d]
-
-
-@ti.kernel
-def clear_image(image: ti.template()):
-    for r, c in image:
-        image[r, c] = ti.Vector([255, 255, 255], dt=ti.u8)
 
 
 @ti.kernel
@@ -307,10 +436,12 @@ class Renderer:
         n, s = self.n_grid, self.size
         self.grid_m = ti.field(float, shape=(n, n))  # node mass m_i (eq 15)
         self.grid_c = ti.Vector.field(3, float, shape=(n, n)) if mode == "color" else None  # color-mass c_i (eq 12)
+        self.line_m = ti.field(float, shape=(n, s))  # [j, column]: m along grid line y = j dx at each column's x
+        self.line_c = ti.Vector.field(3, float, shape=(n, s)) if mode == "color" else None  # the same for c
+        self.box = ti.field(ti.i32, shape=4)  # pixel rows and columns reached by mass (`live_box`)
         self.pixel_m = ti.field(float, shape=(s, s))  # m(x) / rest_node_mass at each pixel center, [row, column]
-        self.image = ti.Vector.field(3, ti.u8, shape=(s, s))  # RGB, row 0 at y = 1
         self._identity = np.tile(np.eye(2, dtype=self.real), (self.n_particles, 1, 1))  # F of plain dots
-        self._target = None  # (res, target fields, the array uploaded), allocated on the first target grid
+        self._target = None  # (res, grid, line, pixel field, the array uploaded), made for the first target grid
 
     # -- one frame ---------------------------------------------------------------------------------------
     def render(self, x, m_p, colors=None, F=None, target_x=None, target_outline=None):
@@ -325,43 +456,36 @@ class Renderer:
         N = len(x)
         m = self._masses(m_p, N)
         th = self.thresholds
-        has_field = False
+        scale = 1.0 / self.rest_node_mass
+        image = np.full((self.size, self.size, 3), 255, np.uint8)  # white; each frame gets its own array
         if self.mode == "mass":
-            self._splat(x, m)
-            has_field = True
-            shade_mass(self.pixel_m, self.image, *th.as_tuple())
+            render_mass(self.grid_m, self.line_m, self.box, self.pixel_m, image, self.inv_dx, scale, x, m, N,
+                        *th.as_tuple())
         elif self.mode == "color":
             if colors is None:
                 raise ValueError("colors: required in color mode, expected shape (N, 3)")
             colors = np.asarray(colors)
             colors = colors / 255.0 if colors.dtype == np.uint8 else colors
             colors = self._array(colors, "colors", (N, 3))
-            self.grid_m.fill(0.0)
-            self.grid_c.fill(0.0)
-            if N:
-                p2g_color(self.grid_m, self.grid_c, self.inv_dx, x, m, colors, N)
-            sample(self.grid_m, self.inv_dx, 1.0 / self.rest_node_mass, self.pixel_m)
-            has_field = True
-            shade_color(self.grid_c, self.pixel_m, self.image, self.inv_dx, 1.0 / self.rest_node_mass, th.empty,
-                        th.low)
+            render_color(self.grid_m, self.grid_c, self.line_m, self.line_c, self.box, self.pixel_m, image,
+                         self.inv_dx, scale, x, m, colors, N, th.empty, th.low)
         else:
-            clear_image(self.image)
             if target_x is not None:
-                self._dots(target_x, TARGET_COLOR)
+                self._dots(image, target_x, TARGET_COLOR)
                 target_x = None
             if N:
                 F = self._identity_for(N) if F is None else self._array(F, "F", (N, 2, 2))
-                draw_particles(self.image, x, F, N, self.radius, self.size / 8.0, ti.Vector(BODY_COLOR))
+                draw_particles(image, x, F, N, self.radius, self.size / 8.0, ti.Vector(BODY_COLOR))
+            if self.body_outline:
+                mass_field(self.grid_m, self.line_m, self.pixel_m, self.inv_dx, scale, x, m, N)
         if self.body_outline:
-            if not has_field:
-                self._splat(x, m)
-            draw_outline(self.pixel_m, self.image, th.empty, self.line_width, ti.Vector(BODY_OUTLINE_COLOR))
+            draw_outline(self.pixel_m, image, th.empty, self.line_width, ti.Vector(BODY_OUTLINE_COLOR))
         if target_outline is not None:
             field = self._target_field(target_outline)
-            draw_outline(field, self.image, self.target_level, self.line_width, ti.Vector(TARGET_OUTLINE_COLOR))
+            draw_outline(field, image, self.target_level, self.line_width, ti.Vector(TARGET_OUTLINE_COLOR))
         if target_x is not None:
-            self._dots(target_x, TARGET_COLOR)
-        return self.image.to_numpy()
+            self._dots(image, target_x, TARGET_COLOR)
+        return image
 
     def render_target(self, target_mass, outline=True):
         """A (res, res) target mass grid in the mass colormap (e.g. the "target" panel of a sheet).
@@ -370,10 +494,11 @@ class Renderer:
         grid, rest_node_mass * (n_grid / res)^2.
         """
         field = self._target_field(target_mass)
-        shade_mass(field, self.image, *self.thresholds.as_tuple())
+        image = np.empty((self.size, self.size, 3), np.uint8)
+        shade_mass(field, image, *self.thresholds.as_tuple())
         if outline:
-            draw_outline(field, self.image, self.target_level, self.line_width, ti.Vector(TARGET_OUTLINE_COLOR))
-        return self.image.to_numpy()
+            draw_outline(field, image, self.target_level, self.line_width, ti.Vector(TARGET_OUTLINE_COLOR))
+        return image
 
     def colormap(self, t):
         """(path positions (K,), uint8 colors (K, 3)) of normalised masses t (K,) through the kernels' colormap."""
@@ -385,16 +510,10 @@ class Renderer:
         return s, rgb
 
     # -- helpers -----------------------------------------------------------------------------------------
-    def _splat(self, x, m):
-        self.grid_m.fill(0.0)
-        if len(x):
-            p2g_mass(self.grid_m, self.inv_dx, x, m, len(x))
-        sample(self.grid_m, self.inv_dx, 1.0 / self.rest_node_mass, self.pixel_m)
-
-    def _dots(self, points, color):
+    def _dots(self, image, points, color):
         points = self._array(points, "target_x", (-1, 2))
         if len(points):
-            draw_particles(self.image, points, self._identity_for(len(points)), len(points), self.radius,
+            draw_particles(image, points, self._identity_for(len(points)), len(points), self.radius,
                            self.size / 8.0, ti.Vector(color))
 
     def _target_field(self, target):
@@ -404,15 +523,15 @@ class Renderer:
             raise ValueError(f"target mass grid: expected shape (res, res) with res >= {STENCIL}, got {target.shape}")
         res = target.shape[0]
         if self._target is None or self._target[0] != res:
-            self._target = (res, ti.field(float, shape=(res, res)), ti.field(float, shape=(self.size, self.size)),
-                            None)
-        _, grid, field, uploaded = self._target
+            self._target = (res, ti.field(float, shape=(res, res)), ti.field(float, shape=(res, self.size)),
+                            ti.field(float, shape=(self.size, self.size)), None)
+        _, grid, line, field, uploaded = self._target
         if uploaded is None or uploaded.shape != target.shape or not np.array_equal(uploaded, target):
             values = self._array(target, "target mass grid", (res, res))
             upload_grid(grid, values)
             rest = self.rest_node_mass * (self.n_grid / res) ** 2  # density * (1 / res)^2
-            sample(grid, float(res), 1.0 / rest, field)
-            self._target = (res, grid, field, values.copy())
+            sample(grid, line, float(res), 1.0 / rest, field)
+            self._target = (res, grid, line, field, values.copy())
         return field
 
     def _identity_for(self, N):
