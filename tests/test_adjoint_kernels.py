@@ -30,6 +30,8 @@ from mls_mpm.material import stress
 from mls_mpm.state import State
 from mls_mpm.transfer import g2p, p2g
 
+pytestmark = pytest.mark.usefixtures("taichi_f64_module")
+
 TOL = 1e-8
 N_PARTICLES = 48
 OUTSIDE = 5  # a particle whose stencil leaves the grid: forward and reverse kernels both skip it

@@ -9,6 +9,8 @@ import mls_mpm
 from conftest import blob, random_controls, rel_err, scene_config
 from mls_mpm.material import stress
 
+pytestmark = pytest.mark.usefixtures("taichi_f64_module")
+
 
 def rigid_velocity(x, omega=1.0, u=(0.3, -0.2), center=(0.5, 0.5)):
     """v = u + omega e_z x (x - center): a translation plus a rotation."""

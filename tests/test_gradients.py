@@ -20,6 +20,8 @@ import pytest
 import mls_mpm
 from conftest import blob, random_controls, random_unit, rel_err, scene_config
 
+pytestmark = pytest.mark.usefixtures("taichi_f64_module")
+
 TAPE_TOL = 1e-6
 FD_TOL = 1e-5
 EPS = 1e-6
