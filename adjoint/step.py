@@ -28,7 +28,7 @@ def p2g_reverse_and_clear(s: ti.template(), a: ti.template(), f, p):
     zero_particle(a, (f + 1) % 2, p)
     slot = f % 2
     total = a.adj_x[slot, p].sum() + a.adj_v[slot, p].sum() + a.adj_C[slot, p].sum() + a.adj_F[slot, p].sum()
-    if total - total != 0.0:  # NaN or Inf in step f's adjoint of particle p: keep the latest step (first seen)
+    if ti.math.isnan(total) or ti.math.isinf(total):  # NaN or Inf in step f's adjoint of particle p: keep the latest step (first seen)
         code = ti.cast(f, ti.i64) * s.n_particles + p
         if a.fault[None] < code:
             a.fault[None] = code

@@ -17,6 +17,9 @@ class StopFlag:
         return self.signal is not None
 
     def install(self):
+        """Install the handlers; returns a function that puts the previous ones back."""
+        previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+
         def handler(signum, _frame):
             if self.signal is not None:  # a second Ctrl-C: stop now
                 raise KeyboardInterrupt
@@ -24,8 +27,9 @@ class StopFlag:
             print(f"\nmls-mpm: got signal {signum}; saving a checkpoint after the current step...", file=sys.stderr,
                   flush=True)
 
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        for sig in previous:
             signal.signal(sig, handler)
+        return lambda: [signal.signal(sig, h) for sig, h in previous.items()]
 
 
 def build_parser():
@@ -111,7 +115,7 @@ def cmd_run(args):
     scene = _scene(args)
     out = Path(args.out) if args.out else Path("renders") / scene.name
     stop = StopFlag()
-    stop.install()
+    restore = stop.install()
     emit = (lambda *_: None) if args.quiet else (lambda msg: print(msg, flush=True))
     from .simulator import SimulationError
 
@@ -122,6 +126,8 @@ def cmd_run(args):
         ckpt = out / "checkpoint.npz"
         saved = f"; the last good checkpoint is {ckpt}" if ckpt.is_file() else ""
         raise SimulationError(f"{e}{saved}") from None
+    finally:
+        restore()
     if summary.get("interrupted"):
         return 130 if stop.signal == signal.SIGINT else 143
     if args.quiet:

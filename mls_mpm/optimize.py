@@ -11,6 +11,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .simulator import SimulationError
+
 ARMIJO = 1e-4  # sufficient decrease: L_new <= L - ARMIJO * step * |g| (normalised) or step * |g|^2 (raw)
 
 
@@ -62,7 +64,8 @@ def gd(sim, controls, settings, on_checkpoint=None, should_stop=None, emit=print
     cfg = sim.cfg
     K, s = cfg.n_controls, cfg.stride
     c, st = _start(controls, resume, {"iteration": 0, "k": 0, "losses": [], "grad_norms": [], "g_first": 0.0,
-                                      "improved": False, "steps": [settings.lr] * K})
+                                      "improved": False, "small": True, "steps": [settings.lr] * K})
+    st.setdefault("small", True)
     L = sim.forward(c)
     if not st["losses"]:
         st["losses"].append(L)
@@ -70,7 +73,6 @@ def gd(sim, controls, settings, on_checkpoint=None, should_stop=None, emit=print
     reason = "iteration budget"
     converged = False
     while st["iteration"] < settings.iterations:
-        small = True
         while st["k"] < K:
             k = st["k"]
             start = k * s
@@ -79,7 +81,7 @@ def gd(sim, controls, settings, on_checkpoint=None, should_stop=None, emit=print
             st["g_first"] = st["g_first"] or gn
             tol = settings.tol * st["g_first"] if settings.step == "normalized" else settings.tol
             if gn > tol:
-                small = False
+                st["small"] = False
                 direction = g / gn if settings.step == "normalized" else g
                 need = gn if settings.step == "normalized" else gn * gn
                 step = st["steps"][k]
@@ -87,7 +89,10 @@ def gd(sim, controls, settings, on_checkpoint=None, should_stop=None, emit=print
                 for tries in range(settings.line_search + 1):
                     trial = c.copy()
                     trial[k] -= step * direction
-                    L_trial = sim.forward(trial, start=start)
+                    try:
+                        L_trial = sim.forward(trial, start=start)
+                    except SimulationError:  # the trial threw particles off the grid: too long a step
+                        L_trial = math.inf
                     if L_trial <= L - ARMIJO * step * need:
                         c, L, accepted = trial, L_trial, True
                         # the next iteration tries twice a step taken at once, else the step that worked
@@ -107,8 +112,8 @@ def gd(sim, controls, settings, on_checkpoint=None, should_stop=None, emit=print
         st["losses"].append(L)
         st["iteration"] += 1
         progress.update(st["iteration"], L, max(st["grad_norms"][-K:]), st["losses"][0])
-        improved = st["improved"]
-        st["k"], st["improved"] = 0, False
+        improved, small = st["improved"], st["small"]
+        st["k"], st["improved"], st["small"] = 0, False, True
         _checkpoint(on_checkpoint, st, c, L)
         if small:
             converged, reason = True, "gradient norm below tolerance"

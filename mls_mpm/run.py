@@ -60,8 +60,8 @@ def run_scene(scene, out_dir, resume=False, emit=print, should_stop=None, render
     which case checkpoint.npz holds everything needed to continue with resume=True.
     """
     t0 = time.perf_counter()
-    out = prepare_out(out_dir)
     prob = problems.build(scene)
+    out = prepare_out(out_dir)
     cfg, opt = scene.sim, scene.optimize
     emit(f"{scene.name}: {len(prob.x0)} particles, {cfg.n_grid}^2 grid, {cfg.steps} steps, "
          f"{cfg.n_controls} control steps, loss {scene.loss.kind} on grids {list(scene.loss.grids)}, "

@@ -168,7 +168,7 @@ class Simulator:
         if not 0 <= n <= self.cfg.steps:
             raise ValueError(f"n = {n}: expected a step in [0, {self.cfg.steps}]")
         N = self.n_particles
-        out = {"x": np.empty((N, 2)), "v": np.empty((N, 2)), "C": np.empty((N, 2, 2)), "F": np.empty((N, 2, 2))}
+        out = {"x": np.zeros((N, 2)), "v": np.zeros((N, 2)), "C": np.zeros((N, 2, 2)), "F": np.zeros((N, 2, 2))}
         out = {k: a.astype(self.np_dtype) for k, a in out.items()}
         read_step(self.fields, n, out["x"], out["v"], out["C"], out["F"])
         return {k: a.astype(np.float64) for k, a in out.items()}
@@ -194,23 +194,28 @@ class Simulator:
         if self.loss is None:
             raise ValueError("this Simulator has no loss: pass loss=PositionLoss/MassLoss/ColorLoss to differentiate")
 
+    def _finite_in_dtype(self, a):
+        """Where a stays finite once cast to the simulation's dtype (1e39 is Inf in f32)."""
+        with np.errstate(over="ignore", invalid="ignore"):
+            return np.isfinite(a.astype(self.np_dtype))
+
     def _particle_array(self, a, name, shape):
         a = np.asarray(a, dtype=np.float64)
         if a.shape != shape:
             raise ValueError(f"{name}: expected shape {shape}, got {a.shape}")
-        bad = np.argwhere(~np.isfinite(a))
+        bad = np.argwhere(~self._finite_in_dtype(a))
         if len(bad):
-            raise ValueError(f"{name}: particle {bad[0][0]} holds NaN or Inf")
+            raise ValueError(f"{name}: particle {bad[0][0]} holds NaN or Inf (in {self.cfg.dtype})")
         return a
 
     def _controls(self, controls):
         controls = np.asarray(controls, dtype=np.float64)
         if controls.shape != self.control_shape:
             raise ValueError(f"controls: expected shape {self.control_shape} (K, N, 2, 2), got {controls.shape}")
-        bad = np.argwhere(~np.isfinite(controls))
+        bad = np.argwhere(~self._finite_in_dtype(controls))
         if len(bad):
             k, p = bad[0][:2]
-            raise ValueError(f"controls: control {k} (step {k * self.cfg.stride}), particle {p} holds NaN or Inf")
+            raise ValueError(f"controls: control {k} (step {k * self.cfg.stride}), particle {p} holds NaN or Inf (in {self.cfg.dtype})")
         return controls
 
     def _raise_fault(self, s):

@@ -90,7 +90,10 @@ def check_particle(s: ti.template(), f, p):
     Kept apart from p2g/g2p (which skip such a particle) so that those stay differentiable by Taichi.
     """
     total = s.x[f, p].sum() + s.v[f, p].sum() + s.C[f, p].sum() + s.F[f, p].sum()
-    if total - total != 0.0:  # NaN or Inf anywhere (NaN != 0 holds; needs fast_math off)
+    if f < s.steps:  # the stress of F + F_pc too, so an overflowing control is named at its source
+        Fs = control_sum(s, f, p)
+        total += Fs.sum() + affine_momentum(s, f, p, Fs).sum()
+    if ti.math.isnan(total) or ti.math.isinf(total):  # NaN or Inf anywhere in the particle's state
         record_fault(s, FAULT_NON_FINITE, f, p)
     else:
         base, _ = stencil(s.x[f, p], s.inv_dx)

@@ -181,7 +181,7 @@ K_BOUNDARY_BUG = ("bug: gd interrupted after the last control step of a temporal
 
 @pytest.mark.parametrize("method,n", [
     ("gd", 2),  # mid temporal iteration 1
-    pytest.param("gd", 4, marks=pytest.mark.xfail(strict=True, reason=K_BOUNDARY_BUG)),  # after its last control
+    ("gd", 4),  # after its last control (k = K checkpointed)
     ("gd", 5),  # between temporal iterations 1 and 2
     ("adam", 2),
 ])

@@ -581,9 +581,6 @@ def test_non_finite_control_is_refused(base, bad):
         base.sim.gradient_tape(c)
 
 
-@pytest.mark.xfail(strict=True, reason="check_particle's NaN/Inf test `total - total != 0.0` (mls_mpm/transfer.py) is "
-                                       "folded to false by Taichi's algebraic simplifier whatever fast_math says, so "
-                                       "a non-finite state is only caught once a NaN position fails the grid test")
 def test_non_finite_state_inside_the_simulation_is_named(base):
     """The kernels' own check (check_particle), behind set_initial's: a NaN written straight into step 0's F of
     particle p (mls_mpm.state.write_step, bypassing set_initial) must be reported by forward() as a non-finite
@@ -602,10 +599,6 @@ def test_non_finite_state_inside_the_simulation_is_named(base):
         base.reset()
 
 
-@pytest.mark.xfail(strict=True, reason="check_particle (mls_mpm/transfer.py) tests x, v, C, F of a step but not "
-                                       "F + F_pc or the stress P(F + F_pc) that p2g scatters, and its NaN/Inf test "
-                                       "is folded away by Taichi: the overflow is reported one step later, as a "
-                                       "neighbour that left the grid")
 def test_overflowing_control_is_named_at_its_source(base):
     """A finite but huge control (1e200 I on particle p at step 110) overflows eq 9 (J ~ 1e400 = Inf) in P2G:
     the SimulationError must name that step and that particle (not a neighbour infected one step later)."""
@@ -618,10 +611,6 @@ def test_overflowing_control_is_named_at_its_source(base):
     assert str(e.value).startswith(f"step {base.k * BASE_STRIDE}: particle {p} "), str(e.value)
 
 
-@pytest.mark.xfail(strict=True, reason="the reverse pass's in-kernel NaN/Inf test (adjoint/step.py "
-                                       "p2g_reverse_and_clear, `total - total != 0.0`) is folded to false by Taichi, "
-                                       "and Simulator.backward no longer checks the gradient it returns: NaN comes "
-                                       "back silently")
 def test_non_finite_adjoint_is_named(base):
     """backward() never returns NaN: a NaN in a stored state that only the reverse pass reads (C of the last
     step, written straight into the fields after forward(); eq 20's (I + dt C^{n+1})^T dL/dF^{n+1}) must raise
@@ -958,8 +947,6 @@ def test_float32_gradient_against_float64(float32_run, capsys):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="Simulator._controls checks finiteness in float64 before the cast to the "
-                                       "simulation's float32, so 1e39 passes and is stored as Inf")
 def test_float32_overflowing_control_is_refused(float32_run):
     """In float32 a control of 1e39 (finite in float64) becomes Inf: refused up front like a NaN, with a
     ValueError naming control 3 (step 30) and particle 45."""
@@ -968,9 +955,6 @@ def test_float32_overflowing_control_is_refused(float32_run):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="check_particle's NaN/Inf test `total - total != 0.0` is folded to false by "
-                                       "Taichi's simplifier (fast_math off or not), and set_initial checks before the "
-                                       "cast to float32")
 def test_float32_overflowing_initial_state_is_named(float32_run):
     """In float32 an initial F entry of 1e39 becomes Inf: refused with a ValueError (set_initial) or a
     SimulationError at step 0 (check_particle runs before the particle is scattered), naming particle 45."""
