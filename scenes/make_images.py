@@ -78,8 +78,33 @@ def broken_heart(scale=1.6, gap=5):
     for side, dx in ((left, -gap), (right, gap)):
         moved = Image.new("L", (SIZE, SIZE), 0)
         moved.paste(ImageChops.multiply(whole, side), (dx, 0))
-        img.paste(BLACK, (0, 0, SIZE, SIZE), moved)
+        img.paste(BLACK, (0, 0, SIZE, SIZE), without_specks(moved))
     return img
+
+
+def without_specks(mask, keep=20):
+    """The mask without its 8-connected pieces of fewer than `keep` pixels (the crack can cut a sliver off
+    the heart's tip, which would become a stray blob in the target)."""
+    px = mask.load()
+    seen, out = set(), Image.new("L", mask.size, 0)
+    for start in ((x, y) for y in range(mask.size[1]) for x in range(mask.size[0])):
+        if start in seen or px[start] < 128:
+            continue
+        piece, todo = [], [start]
+        seen.add(start)
+        while todo:
+            x, y = todo.pop()
+            piece.append((x, y))
+            for nx in (x - 1, x, x + 1):
+                for ny in (y - 1, y, y + 1):
+                    if 0 <= nx < mask.size[0] and 0 <= ny < mask.size[1] and (nx, ny) not in seen \
+                            and px[nx, ny] >= 128:
+                        seen.add((nx, ny))
+                        todo.append((nx, ny))
+        if len(piece) >= keep:
+            for p in piece:
+                out.putpixel(p, 255)
+    return out
 
 
 def halves(first, second, axis):
