@@ -134,12 +134,12 @@ def adam(sim, controls, settings, on_checkpoint=None, should_stop=None, emit=pri
                                       "g_first": 0.0})
     b1, b2, eps = settings.adam_beta1, settings.adam_beta2, 1e-12
     progress = Progress(settings.iterations, emit, "adam step")
+    L = sim.forward(c)
+    if not st["losses"]:
+        st["losses"].append(L)
     while st["iteration"] < settings.iterations:
-        L = sim.forward(c)
-        g = _clip(sim.backward(), settings.clip)
+        g = _clip(sim.backward(), settings.clip)  # of the forward pass just run on c
         gn = float(np.linalg.norm(g))
-        if not st["losses"]:
-            st["losses"].append(L)
         st["g_first"] = st["g_first"] or gn
         if gn <= settings.tol * st["g_first"]:
             return OptimizeResult(c, st["losses"], st["iteration"], True, "gradient norm below tolerance",
@@ -152,7 +152,8 @@ def adam(sim, controls, settings, on_checkpoint=None, should_stop=None, emit=pri
         c = c - settings.lr * m_hat / (np.sqrt(v_hat) + eps * st["g_first"])
         st["iteration"] = t
         st["grad_norms"].append(gn)
-        st["losses"].append(sim.forward(c))
+        L = sim.forward(c)  # also the forward pass of the next step's gradient
+        st["losses"].append(L)
         progress.update(t, st["losses"][-1], gn, st["losses"][0])
         _checkpoint(on_checkpoint, st, c, st["losses"][-1])
         if should_stop and should_stop():

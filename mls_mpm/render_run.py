@@ -10,6 +10,7 @@ import numpy as np
 from PIL import Image
 
 from .frames import FrameWriter, frame_paths, loss_plot, save_png, sheet, write_gif
+from . import runtime
 from .render import Renderer
 from .run import STATE_KEYS, config_of, load_result
 from .simulator import Simulator
@@ -27,6 +28,7 @@ def render_run(out_dir, mode=None, size=None, every=None, arch=None, emit=print)
     size = int(size or rs["size"])
     every = int(every or rs["every"])
     cfg = config_of(settings, arch)
+    runtime.ensure(cfg)  # the Renderer allocates fields before any Simulator starts Taichi
     controls = arrays["controls"]
     n_rounds, N = controls.shape[0], controls.shape[2]
     rest = cfg.density * cfg.dx ** 2

@@ -196,6 +196,17 @@ def test_render_reproduces_the_runs_frames(e2e, tmp_path):
         assert (tmp_path / name).read_bytes() == (e2e["out"] / name).read_bytes(), name
 
 
+def test_render_in_a_fresh_process(e2e, tmp_path):
+    """`mls-mpm render` as users run it: a new process, where nothing has started Taichi before the renderer."""
+    shutil.copy(e2e["out"] / "result.npz", tmp_path / "result.npz")
+    res = subprocess.run(cli("render", tmp_path, "--every", "20"), cwd=ROOT, capture_output=True, text=True,
+                         timeout=300)
+    assert res.returncode == 0, res.stderr
+    assert [p.name for p in frame_paths(tmp_path / "frames")] == ["frame_00000.png", "frame_00001.png"]
+    first = (tmp_path / "frames" / "frame_00000.png").read_bytes()
+    assert first == (e2e["out"] / "frames" / "frame_00000.png").read_bytes()
+
+
 def test_render_options(e2e, tmp_path):
     shutil.copy(e2e["out"] / "result.npz", tmp_path / "result.npz")
     (tmp_path / "frames").mkdir()
