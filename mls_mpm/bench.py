@@ -25,7 +25,7 @@ def _scene(case, steps):
     from .config import SimConfig
 
     cfg = SimConfig(n_grid=case["n_grid"], steps=steps, dt=1e-4, E=1e3, nu=0.2, density=1.0, gamma=0.5,
-                    stride=10, dtype=case["dtype"], threads=THREADS, schedule=case.get("schedule", "auto"))
+                    stride=min(10, steps), dtype=case["dtype"], threads=THREADS, schedule=case.get("schedule", "auto"))
     rng = np.random.default_rng(0)
     r = 0.25 * np.sqrt(rng.uniform(0, 1, case["particles"]))
     a = rng.uniform(0, 2 * np.pi, case["particles"])
