@@ -71,7 +71,7 @@ def machine():
         pass
     import taichi
 
-    return f"{cpu}; Python {platform.python_version()}; Taichi {taichi.__version__}; {platform.system()}"
+    return f"{cpu}; Python {platform.python_version()}; Taichi {".".join(map(str, taichi.__version__))}; {platform.system()}"
 
 
 def main(argv=None):
