@@ -60,6 +60,7 @@ class Simulator:
         self._adjoint = None
         self._start = 0
         self._stop = 0
+        self._tape_state = None  # grad-enabled fields, allocated by the first gradient_tape call
         self.set_initial(x0)
 
     @property
@@ -168,8 +169,8 @@ class Simulator:
         if not 0 <= n <= self.cfg.steps:
             raise ValueError(f"n = {n}: expected a step in [0, {self.cfg.steps}]")
         N = self.n_particles
-        out = {"x": np.zeros((N, 2)), "v": np.zeros((N, 2)), "C": np.zeros((N, 2, 2)), "F": np.zeros((N, 2, 2))}
-        out = {k: a.astype(self.np_dtype) for k, a in out.items()}
+        out = {k: np.zeros((N,) + shape, self.np_dtype) for k, shape in (("x", (2,)), ("v", (2,)), ("C", (2, 2)),
+                                                                        ("F", (2, 2)))}
         read_step(self.fields, n, out["x"], out["v"], out["C"], out["F"])
         return {k: a.astype(np.float64) for k, a in out.items()}
 
@@ -181,7 +182,7 @@ class Simulator:
         self._require_loss()
         controls = self._controls(controls)
         _, grad, self._tape_state = tape_gradient(self.cfg, self.state(0), self.loss, controls, validation,
-                                                  getattr(self, "_tape_state", None))
+                                                  self._tape_state)
         return grad
 
     # helpers
