@@ -1,26 +1,20 @@
-"""Reverse grid operations (eq 49-53, plus gravity, walls and the empty-node threshold)."""
+"""Reverse grid operations (eq 49-53, plus gravity, walls and the guarded division at empty nodes)."""
 import taichi as ti
 
-from mls_mpm.grid import wall_mask
+from mls_mpm.grid import free_velocity, wall_mask
 
 
 @ti.func
 def grid_op_reverse_node(s: ti.template(), a: ti.template(), f, i, j):
     """dL/dp_i = M g / m_i (eq 50), dL/dm_i = -(p_i / m_i) . M g / m_i (eq 52-53), M the wall mask.
 
-    Gravity adds a constant, so it passes g through unchanged; empty nodes (m_i <= m_eps, zero
-    velocity in the forward pass) pass nothing back, the same threshold as the forward pass.
+    With gravity's impulse and the guard, v = (p + m dt g) / (m + m_eps): dL/dp_i = M g / (m_i + m_eps) and
+    dL/dm_i = (dt g - v_free) . M g / (m_i + m_eps), which is eq 52-53 up to m_eps (v_free - dt g = p_i / m_i).
     """
-    m = s.grid_m[f, i, j]
-    g_p = ti.Vector.zero(float, 2)
-    g_m = 0.0 * m
-    if m > s.m_eps:
-        v_free = s.grid_p[f, i, j] / m
-        g_v = a.adj_grid_v[i, j] * wall_mask(s, ti.Vector([i, j]), v_free + s.dt * ti.Vector(s.gravity))
-        g_p = g_v / m
-        g_m = -v_free.dot(g_v) / m
-    a.adj_grid_p[i, j] = g_p
-    a.adj_grid_m[i, j] = g_m
+    v_free = free_velocity(s, f, i, j)
+    g_v = a.adj_grid_v[i, j] * wall_mask(s, ti.Vector([i, j]), v_free) / (s.grid_m[f, i, j] + s.m_eps)
+    a.adj_grid_p[i, j] = g_v
+    a.adj_grid_m[i, j] = (s.dt * ti.Vector(s.gravity) - v_free).dot(g_v)
 
 
 @ti.kernel

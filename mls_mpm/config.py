@@ -32,7 +32,7 @@ class SimConfig:
     E, nu: Young's modulus and Poisson ratio of the fixed-corotated material (eq 9).
     density: rest density; particle rest volume V_p^0 = dx^2 / particles_per_cell, mass m_p = density V_p^0.
     gamma: drag coefficient of eq 16; gamma * dt must stay below 1.
-    gravity: acceleration added to every non-empty node after eq 17.
+    gravity: acceleration; every node gains the impulse m_i dt g before eq 17's division.
     boundary: "slip" zeroes the velocity component into a wall, "sticky" the whole velocity,
         on nodes closer than `bound` cells to an edge.
     bound: width of the wall zone in cells.

@@ -1,4 +1,4 @@
-"""Grid operations of one step: eq 17, gravity, walls and the empty-node threshold."""
+"""Grid operations of one step: eq 17, gravity, walls and the guarded division at empty nodes."""
 import taichi as ti
 
 
@@ -23,14 +23,22 @@ def wall_mask(s: ti.template(), I, v):
 
 
 @ti.func
-def grid_op_node(s: ti.template(), f, i, j):
-    """v_i = p_i / m_i (eq 17) + dt g, then walls; empty nodes (m_i <= m_eps) get zero velocity."""
+def free_velocity(s: ti.template(), f, i, j):
+    """(p_i + m_i dt g) / (m_i + m_eps): eq 17 with gravity's impulse, before the walls.
+
+    m_eps = 1e-20 m_p guards the division at empty nodes (v = 0 there) without a cut or a kink: p_i and m_i
+    both carry the weights N_ip, so the quotient stays bounded and smooth as m_i -> 0, and at any node mass
+    that matters (m_i >= 1e-4 m_p) m_eps changes it by less than round-off.
+    """
     m = s.grid_m[f, i, j]
-    v = ti.Vector.zero(float, 2)
-    if m > s.m_eps:
-        v = s.grid_p[f, i, j] / m + s.dt * ti.Vector(s.gravity)
-        v *= wall_mask(s, ti.Vector([i, j]), v)
-    s.grid_v[f, i, j] = v
+    return (s.grid_p[f, i, j] + m * s.dt * ti.Vector(s.gravity)) / (m + s.m_eps)
+
+
+@ti.func
+def grid_op_node(s: ti.template(), f, i, j):
+    """v_i = p_i / m_i (eq 17) + dt g, then walls (free_velocity: the guarded division)."""
+    v = free_velocity(s, f, i, j)
+    s.grid_v[f, i, j] = v * wall_mask(s, ti.Vector([i, j]), v)
 
 
 @ti.kernel

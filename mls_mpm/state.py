@@ -68,7 +68,7 @@ class State:
         # (no float atomics); 0: atomic adds straight into grid f (GPUs, the serial schedule, the Tape)
         self.lanes = lanes
         self.lane_chunk = -(-n_particles // max(lanes, 1))  # particles per lane
-        self.m_eps = 1e-10 * cfg.m_p  # grid nodes lighter than this are empty (eq 17 guard)
+        self.m_eps = 1e-20 * cfg.m_p  # eq 17 divides by m_i + m_eps: zero at empty nodes, nowhere a cut
         g = needs_grad
         N, n = n_particles, cfg.n_grid
         self.x = ti.Vector.field(2, dt_, shape=(T + 1, N), needs_grad=g)  # position x_p^n

@@ -151,9 +151,8 @@ def reference_step(cfg, st, F_pc):
         np.add.at(grid_m, (node[:, 0], node[:, 1]), N * m_p)  # eq 15
         mom = m_p * v * (1 - dt * cfg.gamma) + np.einsum("pab,pb->pa", G, dpos)  # eq 16
         np.add.at(grid_p, (node[:, 0], node[:, 1]), N[:, None] * mom)
-    live = grid_m > 1e-10 * m_p
-    grid_v = np.zeros((n, n, 2))
-    grid_v[live] = grid_p[live] / grid_m[live][:, None] + dt * np.asarray(cfg.gravity)  # eq 17 + gravity
+    # eq 17 + gravity's impulse, guarded at empty nodes by m_eps = 1e-20 m_p (mls_mpm/grid.py free_velocity)
+    grid_v = (grid_p + grid_m[..., None] * dt * np.asarray(cfg.gravity)) / (grid_m + 1e-20 * m_p)[..., None]
     idx = np.arange(n)
     for d in range(2):
         low = np.broadcast_to((idx < cfg.bound)[:, None] if d == 0 else (idx < cfg.bound)[None, :], (n, n))
