@@ -5,8 +5,11 @@ Pixels sample the fields with the simulation's own cubic B-spline basis (`kernel
 m(x) = sum_i N(x - x_i) m_i, the "fragment shader" of thesis 7.1. N(x) = N1(x0/dx) N1(x1/dx) is separable, so
 the sum runs in two passes: along x once per pixel column onto every grid line (`sample_columns`), then along y
 per pixel (`sample_pixel`), 4 + 4 multiply-adds instead of 16 per pixel. A mass or color frame is one kernel
-launch (P2G, both passes and the shading) painting a white numpy array that is returned as the frame; pixels
+launch (P2G, both passes and the shading) painting the Renderer's white image field, copied out as the frame; pixels
 whose stencils reach no node with mass are exactly 0 and skip the sampling (`live_box`).
+
+Outlines (the body's at the "empty" threshold, the target's at `target_level`) are contours of a pixel field,
+traced by marching squares on the pixel samples and drawn antialiased (`draw_outline`, one launch each).
 
 Images are uint8 (size, size, 3) arrays indexed [row, column]; the y axis points up like the domain's, so
 row 0 is y = 1 and column 0 is x = 0. Pixel (r, c) samples the domain point ((c + 1/2) / size, 1 - (r + 1/2) / size).
@@ -219,7 +222,7 @@ def to_u8(color):
 
 
 @ti.func
-def put(image: ti.types.ndarray(), r, c, rgb):
+def put(image: ti.template(), r, c, rgb):
     """Write the bytes rgb to pixel (r, c) of a uint8 (size, size, 3) array."""
     for k in ti.static(range(3)):
         image[r, c, k] = rgb[k]
@@ -236,30 +239,45 @@ def splat_mass(grid_m: ti.template(), inv_dx, x: ti.types.ndarray(), m: ti.types
         scatter(grid_m, ti.Vector([x[p, 0], x[p, 1]]), inv_dx, m[p])
 
 
+@ti.func
+def sample_live(line: ti.template(), box: ti.template(), inv_dx, scale, out: ti.template()):
+    """out[r, c] = scale * m(x) at the pixels of the live box (`sample_rows` there), exactly 0 elsewhere."""
+    for r in range(out.shape[0]):
+        J, W = row_stencil(r, line, inv_dx)
+        row_live, c0, c1 = box[0] <= r <= box[1], box[2], box[3]
+        for c in range(out.shape[1]):
+            t = 0.0
+            if row_live and c0 <= c <= c1:
+                t = scale * sample_pixel(line, c, J, W)
+            out[r, c] = t
+
+
+@ti.func
+def paint_mass(pixel_m: ti.template(), image: ti.template(), e, low, mid, high):
+    """Thesis 7.1's colormap (high mass red, medium green, low blue) painted over a white image where
+    pixel_m > empty (below, position_on_path is 0: white, as the image starts)."""
+    for r, c in pixel_m:
+        t = pixel_m[r, c]
+        if t > e:
+            put(image, r, c, to_u8(palette(position_on_path(t, e, low, mid, high))))
+
+
 @ti.kernel
 def render_mass(grid_m: ti.template(), line_m: ti.template(), box: ti.template(), pixel_m: ti.template(),
-                image: ti.types.ndarray(), inv_dx: float, scale: float, x: ti.types.ndarray(), m: ti.types.ndarray(),
+                image: ti.template(), inv_dx: float, scale: float, x: ti.types.ndarray(), m: ti.types.ndarray(),
                 n: ti.i32, e: float, low: float, mid: float, high: float):
     """Thesis 7.1 in one launch: P2G, pixel_m = scale * m(x) sampled in two separable passes, and the
-    colormap (high mass red, medium green, low blue) painted over a white image where pixel_m > empty."""
+    colormap painted over a white image."""
     splat_mass(grid_m, inv_dx, x, m, n)
     sample_columns(grid_m, line_m, inv_dx)
     live_box(grid_m, box, inv_dx, pixel_m.shape[0])
-    for r in range(pixel_m.shape[0]):
-        J, W = row_stencil(r, line_m, inv_dx)
-        row_live, c0, c1 = box[0] <= r <= box[1], box[2], box[3]
-        for c in range(pixel_m.shape[1]):
-            t = 0.0
-            if row_live and c0 <= c <= c1:
-                t = scale * sample_pixel(line_m, c, J, W)
-            pixel_m[r, c] = t
-            if t > e:  # below, position_on_path is 0: white, as the image starts
-                put(image, r, c, to_u8(palette(position_on_path(t, e, low, mid, high))))
+    sample_live(line_m, box, inv_dx, scale, pixel_m)
+    paint_mass(pixel_m, image, e, low, mid, high)
 
 
 @ti.kernel
 def render_color(grid_m: ti.template(), grid_c: ti.template(), line_m: ti.template(), line_c: ti.template(),
-                 box: ti.template(), pixel_m: ti.template(), image: ti.types.ndarray(), inv_dx: float, scale: float,
+                 box: ti.template(), pixel_m: ti.template(), image: ti.template(), inv_dx: float, scale: float,
                  x: ti.types.ndarray(), m: ti.types.ndarray(), colors: ti.types.ndarray(), n: ti.i32, e: float,
                  low: float):
     """Thesis 7.5 in one launch: P2G of m_i and the color-mass c_i = sum_p N(x_i - x_p) m_p c_p (eq 12),
@@ -275,15 +293,12 @@ def render_color(grid_m: ti.template(), grid_c: ti.template(), line_m: ti.templa
     sample_columns(grid_m, line_m, inv_dx)
     sample_columns(grid_c, line_c, inv_dx)
     live_box(grid_m, box, inv_dx, pixel_m.shape[0])  # c_i = 0 where m_i = 0
-    for r in range(pixel_m.shape[0]):
-        J, W = row_stencil(r, line_m, inv_dx)
-        row_live, c0, c1 = box[0] <= r <= box[1], box[2], box[3]
-        for c in range(pixel_m.shape[1]):
-            t = 0.0
-            if row_live and c0 <= c <= c1:
-                t = scale * sample_pixel(line_m, c, J, W)
-            pixel_m[r, c] = t
-            if t > e:  # white below, as the image starts
+    sample_live(line_m, box, inv_dx, scale, pixel_m)
+    for r in range(box[0], box[1] + 1):  # elsewhere pixel_m = 0: white, as the image starts
+        J, W = row_stencil(r, line_c, inv_dx)
+        for c in range(box[2], box[3] + 1):
+            t = pixel_m[r, c]
+            if t > e:  # white below
                 rgb = ti.math.clamp(sample_pixel(line_c, c, J, W) / (t / scale), 0.0, 1.0)  # m(x) > e * rest > 0
                 color = rgb  # the blend below at a = 1
                 if t < low:
@@ -309,14 +324,13 @@ def sample(grid: ti.template(), line: ti.template(), inv_dx: float, scale: float
 
 
 @ti.kernel
-def shade_mass(pixel_m: ti.template(), image: ti.types.ndarray(), e: float, low: float, mid: float, high: float):
-    """Thesis 7.1: high mass red, medium green, low blue, nearly zero white."""
-    for r, c in pixel_m:
-        put(image, r, c, to_u8(palette(position_on_path(pixel_m[r, c], e, low, mid, high))))
+def shade_mass(pixel_m: ti.template(), image: ti.template(), e: float, low: float, mid: float, high: float):
+    """Thesis 7.1's colormap of a sampled field, painted over a white image."""
+    paint_mass(pixel_m, image, e, low, mid, high)
 
 
 @ti.kernel
-def draw_particles(image: ti.types.ndarray(), x: ti.types.ndarray(), F: ti.types.ndarray(), n: ti.i32, radius: float,
+def draw_particles(image: ti.template(), x: ti.types.ndarray(), F: ti.types.ndarray(), n: ti.i32, radius: float,
                    max_extent: float, color: ti.types.vector(3, float)):
     """Paint, for each particle, the image under F of a disc of `radius` pixels around it (Fig 3's ellipses).
 
@@ -348,27 +362,122 @@ def draw_particles(image: ti.types.ndarray(), x: ti.types.ndarray(), F: ti.types
             put(image, rc[1], rc[0], rgb)
 
 
-@ti.kernel
-def draw_outline(field: ti.template(), image: ti.types.ndarray(), level: float, width: ti.template(),
-                 color: ti.types.vector(3, float)):
-    """Pixel-level contour: paint pixels with field >= level that have a pixel below level within `width`
-    (|dr| + |dc| <= width, pixels of the image only).
+@ti.func
+def edge_crossing(P0, P1, f0, f1, level):
+    """The point of the cell edge P0 -> P1 where the field, linear along the edge, equals level. On an edge
+    that does not cross (f0, f1 on the same side) the result is unused; the guard only keeps it finite."""
+    return P0 + (level - f0) / ti.select(f1 != f0, f1 - f0, 1.0) * (P1 - P0)
 
-    Neighbours are clamped onto the image: a clamped neighbour lies in the same diamond (or is the pixel
-    itself), so clamping checks exactly the neighbours inside the image, without a branch.
+
+@ti.func
+def cell_segments(field: ti.template(), r, c, level):
+    """Marching squares in the cell whose corners are the samples at pixels (r, c), (r, c+1), (r+1, c+1),
+    (r+1, c): corners k = 0..3 in that order, edge k from corner k to corner k + 1 (mod 4).
+
+    A corner is inside when field >= level; an edge whose corners differ crosses the contour at the point
+    where the field, interpolated linearly along it, equals level (`edge_crossing`). 2 crossed edges make one
+    segment. 4 (the saddles: corners 0, 2 on one side, 1, 3 on the other) make two, resolved by the cell-center
+    average: the segments cut off the two corners whose side differs from the center's, so a center inside
+    joins the inside corners and a center below the level separates them.
+    Returns (n, a0, b0, a1, b1): n = 0, 1 or 2 segments a0-b0, a1-b1, in continuous pixel coordinates
+    (column, row), pixel (r, c) spanning [c, c + 1) x [r, r + 1) (its sample at the center)."""
+    f = ti.Vector([field[r, c], field[r, c + 1], field[r + 1, c + 1], field[r + 1, c]])
+    zero = ti.Vector([0.0, 0.0])
+    n, a0, b0, a1, b1 = 0, zero, zero, zero, zero
+    if f.min() < level <= f.max():  # corners on both sides (most cells lie on one side: nothing to compute)
+        inside = f >= level
+        crossed = 0
+        for k in ti.static(range(4)):
+            crossed += inside[k] != inside[(k + 1) % 4]
+        u, v = ti.cast(c, float) + 0.5, ti.cast(r, float) + 0.5
+        P = [ti.Vector([u, v]), ti.Vector([u + 1.0, v]), ti.Vector([u + 1.0, v + 1.0]), ti.Vector([u, v + 1.0])]
+        E = [edge_crossing(P[k], P[(k + 1) % 4], f[k], f[(k + 1) % 4], level) for k in ti.static(range(4))]
+        if crossed == 4:  # a saddle
+            n = 2
+            if inside[1] != (f.sum() / 4.0 >= level):  # corner k lies between edges k - 1 and k
+                a0, b0, a1, b1 = E[0], E[1], E[2], E[3]  # cut off corners 1 and 3
+            else:
+                a0, b0, a1, b1 = E[3], E[0], E[1], E[2]  # cut off corners 0 and 2
+        else:
+            n = 1
+            first = 1
+            for k in ti.static(range(4)):
+                if inside[k] != inside[(k + 1) % 4]:
+                    if first:
+                        a0 = E[k]
+                        first = 0
+                    else:
+                        b0 = E[k]
+    return n, a0, b0, a1, b1
+
+
+@ti.func
+def stamp_segment(ink: ti.template(), a, b, width):
+    """ink = max(ink, coverage) over the pixels near segment a-b (continuous pixel coordinates):
+    coverage = clamp(width / 2 + 1/2 - d, 0, 1), d the distance from the pixel's center to the segment, the
+    share of the pixel a line `width` pixels wide covers where it runs straight past (antialiasing)."""
+    reach = 0.5 * width + 0.5  # pixels at least this far from the segment get no ink
+    lo = ti.max(ti.cast(ti.floor(ti.min(a, b) - reach), ti.i32), 0)
+    hi = ti.min(ti.cast(ti.floor(ti.max(a, b) + reach), ti.i32), ti.Vector([ink.shape[1], ink.shape[0]]) - 1)
+    ab = b - a
+    length2 = ab.dot(ab)
+    for row in range(lo[1], hi[1] + 1):
+        for col in range(lo[0], hi[0] + 1):
+            q = ti.Vector([ti.cast(col, float) + 0.5, ti.cast(row, float) + 0.5]) - a
+            s = 0.0  # a segment of length 0 (the contour through a sample): the distance to its point
+            if length2 > 0.0:
+                s = ti.math.clamp(q.dot(ab) / length2, 0.0, 1.0)
+            coverage = ti.min(reach - (q - s * ab).norm(), 1.0)
+            if coverage > 0.0:
+                ti.atomic_max(ink[row, col], coverage)
+
+
+@ti.kernel
+def draw_outline(field: ti.template(), ink: ti.template(), image: ti.template(), level: float, width: float,
+                 color: ti.types.vector(3, float)):
+    """The contour field = level, by marching squares on the pixel samples (`cell_segments`), drawn `width`
+    pixels wide and antialiased over the image in one launch: each cell stamps its segments' coverage into ink
+    (`stamp_segment`; a maximum, so overlapping segments do not darken their joints, and the bytes do not depend
+    on the order of the cells), then each inked pixel is blended towards color by its coverage.
+
+    The contour runs between pixel centers: none is drawn along the image border, where no cell reaches.
     """
-    size = field.shape[0]
-    rgb = to_u8(color)
-    for r in range(size):
-        for c in range(size):
-            if field[r, c] >= level:
-                edge = 0
-                for dr in ti.static(range(-width, width + 1)):
-                    rr = ti.min(ti.max(r + dr, 0), size - 1)
-                    for dc in range(abs(dr) - width, width - abs(dr) + 1):
-                        edge |= field[rr, ti.min(ti.max(c + dc, 0), size - 1)] < level
-                if edge:
-                    put(image, r, c, rgb)
+    clear(ink)
+    for r in range(field.shape[0] - 1):  # rows in parallel, the cells of a row in sequence
+        for c in range(field.shape[1] - 1):
+            n, a0, b0, a1, b1 = cell_segments(field, r, c, level)
+            if n >= 1:
+                stamp_segment(ink, a0, b0, width)
+            if n == 2:
+                stamp_segment(ink, a1, b1, width)
+    for r, c in ink:
+        alpha = ink[r, c]
+        if alpha > 0.0:
+            old = ti.Vector([ti.cast(image[r, c, k], float) for k in ti.static(range(3))]) / 255.0
+            put(image, r, c, to_u8(old + (color - old) * alpha))
+
+
+@ti.kernel
+def contour_cells(field: ti.template(), level: float, count: ti.types.ndarray(), ends: ti.types.ndarray()):
+    """count[r, c] and ends[r, c, k, end, axis]: the segments of every cell of `draw_outline`'s contour."""
+    for r, c in ti.ndrange(field.shape[0] - 1, field.shape[1] - 1):
+        n, a0, b0, a1, b1 = cell_segments(field, r, c, level)
+        count[r, c] = n
+        for d in ti.static(range(2)):
+            ends[r, c, 0, 0, d], ends[r, c, 0, 1, d] = a0[d], b0[d]
+            ends[r, c, 1, 0, d], ends[r, c, 1, 1, d] = a1[d], b1[d]
+
+
+def contour(field, level):
+    """The marching-squares segments of a pixel field (a Taichi field [row, column], at least 2 x 2) at level,
+    as drawn by `draw_outline`: an array (K, 2, 2) of endpoints in continuous pixel coordinates (column, row)."""
+    rows, cols = field.shape
+    real = np.float64 if impl.current_cfg().default_fp == ti.f64 else np.float32
+    count = np.zeros((rows - 1, cols - 1), np.int32)
+    ends = np.zeros((rows - 1, cols - 1, 2, 2, 2), real)
+    contour_cells(field, level, count, ends)
+    keep = np.arange(2) < count[..., None]  # [r, c, k]: segment k of cell (r, c) exists
+    return ends[keep].astype(np.float64)
 
 
 @ti.kernel
@@ -399,9 +508,14 @@ class Renderer:
     mode: "mass" (thesis 7.1), "color" (7.5) or "particles" (Fig 3).
     thresholds: `Thresholds` (or a 4-tuple) of the mass colormap and the color mode's fade to white.
     radius: particle dot radius in pixels ("particles" mode and target positions).
-    body_outline: draw the contour m(x) / rest_node_mass = thresholds.empty over the image.
+    body_outline: draw the contour m(x) / rest_node_mass = thresholds.empty over the image, the silhouette of
+        the body (over particles too).
     target_level: normalised mass level of the target outline (0.5: the edge of a B-spline-smoothed shape).
     line_width: outline width in pixels.
+
+    Outlines are marching-squares contours of the pixel-sampled field (`cell_segments`: endpoints interpolated
+    linearly between pixel centers, saddles resolved by the cell-center average), drawn line_width pixels wide
+    with antialiased edges (`stamp_segment`); `contour` returns the segments themselves.
     """
 
     def __init__(self, n_grid, n_particles, size=512, rest_node_mass=None, mode="mass", thresholds=None,
@@ -440,6 +554,8 @@ class Renderer:
         self.line_c = ti.Vector.field(3, float, shape=(n, s)) if mode == "color" else None  # the same for c
         self.box = ti.field(ti.i32, shape=4)  # pixel rows and columns reached by mass (`live_box`)
         self.pixel_m = ti.field(float, shape=(s, s))  # m(x) / rest_node_mass at each pixel center, [row, column]
+        self.image = ti.field(ti.u8, shape=(s, s, 3))  # the frame being drawn, RGB bytes [row, column, channel]
+        self.ink = ti.field(float, shape=(s, s))  # an outline's coverage of each pixel in [0, 1] (`draw_outline`)
         self._identity = np.tile(np.eye(2, dtype=self.real), (self.n_particles, 1, 1))  # F of plain dots
         self._target = None  # (res, grid, line, pixel field, the array uploaded), made for the first target grid
 
@@ -457,7 +573,7 @@ class Renderer:
         m = self._masses(m_p, N)
         th = self.thresholds
         scale = 1.0 / self.rest_node_mass
-        image = np.full((self.size, self.size, 3), 255, np.uint8)  # white; each frame gets its own array
+        image = self._blank()
         if self.mode == "mass":
             render_mass(self.grid_m, self.line_m, self.box, self.pixel_m, image, self.inv_dx, scale, x, m, N,
                         *th.as_tuple())
@@ -479,13 +595,12 @@ class Renderer:
             if self.body_outline:
                 mass_field(self.grid_m, self.line_m, self.pixel_m, self.inv_dx, scale, x, m, N)
         if self.body_outline:
-            draw_outline(self.pixel_m, image, th.empty, self.line_width, ti.Vector(BODY_OUTLINE_COLOR))
+            self._outline(self.pixel_m, image, th.empty, BODY_OUTLINE_COLOR)
         if target_outline is not None:
-            field = self._target_field(target_outline)
-            draw_outline(field, image, self.target_level, self.line_width, ti.Vector(TARGET_OUTLINE_COLOR))
+            self._outline(self._target_field(target_outline), image, self.target_level, TARGET_OUTLINE_COLOR)
         if target_x is not None:
             self._dots(image, target_x, TARGET_COLOR)
-        return image
+        return image.to_numpy()  # each frame gets its own array
 
     def render_target(self, target_mass, outline=True):
         """A (res, res) target mass grid in the mass colormap (e.g. the "target" panel of a sheet).
@@ -494,11 +609,11 @@ class Renderer:
         grid, rest_node_mass * (n_grid / res)^2.
         """
         field = self._target_field(target_mass)
-        image = np.empty((self.size, self.size, 3), np.uint8)
+        image = self._blank()
         shade_mass(field, image, *self.thresholds.as_tuple())
         if outline:
-            draw_outline(field, image, self.target_level, self.line_width, ti.Vector(TARGET_OUTLINE_COLOR))
-        return image
+            self._outline(field, image, self.target_level, TARGET_OUTLINE_COLOR)
+        return image.to_numpy()
 
     def colormap(self, t):
         """(path positions (K,), uint8 colors (K, 3)) of normalised masses t (K,) through the kernels' colormap."""
@@ -510,6 +625,15 @@ class Renderer:
         return s, rgb
 
     # -- helpers -----------------------------------------------------------------------------------------
+    def _blank(self):
+        """The image field, white. The frame kernels draw into this field rather than into a numpy array: on
+        a GPU Taichi does not upload an array that a kernel only writes, so a white array would not stay white."""
+        self.image.fill(255)
+        return self.image
+
+    def _outline(self, field, image, level, color):
+        draw_outline(field, self.ink, image, level, float(self.line_width), ti.Vector(color))
+
     def _dots(self, image, points, color):
         points = self._array(points, "target_x", (-1, 2))
         if len(points):

@@ -1,12 +1,15 @@
 """Renderers (thesis 7.1, 7.5, Fig 3) and frame output: pixel values, orientation, files."""
 import numpy as np
 import pytest
+import taichi as ti
 from PIL import Image
+from scipy import ndimage
 
 import mls_mpm
 import mls_mpm.runtime
 from mls_mpm.frames import FrameWriter, frame_paths, loss_plot, sheet, write_gif
-from mls_mpm.render import BODY_OUTLINE_COLOR, PATH, TARGET_COLOR, Renderer, Thresholds, path_color, path_position
+from mls_mpm.render import (BODY_OUTLINE_COLOR, PATH, TARGET_COLOR, Renderer, Thresholds, contour, draw_outline,
+                            path_color, path_position)
 
 N_GRID = 32
 DX = 1.0 / N_GRID
@@ -147,29 +150,6 @@ def test_particles_ellipses_follow_F_and_targets_are_green():
     assert len(rows) and abs(cols.mean() + 0.5 - 0.7 * SIZE) < 1.0 and abs(rows.mean() + 0.5 - 0.5 * SIZE) < 1.0
 
 
-def test_target_outline_and_body_outline():
-    res = 2 * N_GRID  # a finer target grid (thesis 8.1)
-    target = np.zeros((res, res))
-    target[res // 4: 3 * res // 4 + 1, res // 4: 3 * res // 4 + 1] = (1.0 / res) ** 2  # rest mass of its nodes
-    r = Renderer(N_GRID, 0, SIZE, REST, "mass", body_outline=True)
-    img = r.render(np.zeros((0, 2)), REST, target_outline=target)
-    rows, cols = np.nonzero((img == 0).all(-1))
-    # the half-mass contour of the square [0.25, 0.75]^2 lies on its edge
-    assert len(rows) > 4 * 0.4 * SIZE
-    assert abs(cols.min() + 0.5 - 0.25 * SIZE) <= 2 and abs(cols.max() + 0.5 - 0.75 * SIZE) <= 2
-    assert abs(rows.min() + 0.5 - 0.25 * SIZE) <= 2 and abs(rows.max() + 0.5 - 0.75 * SIZE) <= 2
-    assert ((img == 0).all(-1) | (img == 255).all(-1)).all()
-    # the body outline surrounds the colored pixels, at the empty threshold
-    x, m_p = block(0.375, 0.625)
-    img = r.render(x, m_p)
-    grey = (img == np.floor(np.array(BODY_OUTLINE_COLOR) * 255 + 0.5).astype(np.uint8)).all(-1)
-    rows, cols = np.nonzero(grey)
-    assert (img[SIZE // 2, SIZE // 2] == RED).all() and len(rows) > 4 * 0.25 * SIZE
-    m = r.pixel_m.to_numpy()
-    assert (m[grey] >= Thresholds().empty).all() and m[grey].max() < 0.1
-    assert cols.min() < (0.375 - DX) * SIZE and cols.max() > (0.625 + DX) * SIZE  # around the faint blue rim
-
-
 def bspline(t):
     """The 1D cubic B-spline N1 (eq 2), numpy reference."""
     t = np.abs(t)
@@ -236,26 +216,164 @@ def test_frames_are_independent_and_reproducible():
     assert not np.array_equal(r.render(x[:1000], REST / 4), first)
 
 
+# -- outlines: marching squares on the pixel samples -----------------------------------------------------
+def pixel_field(values):
+    """A Taichi field holding a numpy array [row, column] (the kernels' pixel fields are Taichi fields)."""
+    f = ti.field(float, shape=values.shape)
+    f.from_numpy(np.asarray(values, dtype=np.float64))
+    return f
+
+
+def ink_of(values, level, width, background=None):
+    """(the image with the outline drawn in black, its coverage 1 - byte / 255 over white) of a pixel field."""
+    f = pixel_field(values)
+    field = ti.field(ti.u8, shape=values.shape + (3,))  # the Renderer's kernels draw into a Taichi field
+    field.from_numpy(np.full(values.shape + (3,), 255, np.uint8) if background is None else background)
+    draw_outline(f, ti.field(float, shape=values.shape), field, level, float(width), ti.Vector([0.0, 0.0, 0.0]))
+    image = field.to_numpy()
+    return image, 1.0 - image[..., 0] / 255.0
+
+
+def centers(shape):
+    """(u, v): continuous pixel coordinates (column, row) of every pixel center."""
+    return np.meshgrid(np.arange(shape[1]) + 0.5, np.arange(shape[0]) + 0.5)
+
+
+def distance_to_segments(points, segments):
+    """Distance of each point (P, 2) to the nearest of segments (K, 2, 2), brute force."""
+    a, ab = segments[:, 0], segments[:, 1] - segments[:, 0]
+    q = points[:, None, :] - a[None]
+    s = np.clip((q * ab).sum(-1) / np.maximum((ab * ab).sum(-1), 1e-300), 0.0, 1.0)
+    return np.linalg.norm(q - s[..., None] * ab, axis=-1).min(axis=1)
+
+
+def edge_value(values, points):
+    """The field at points on cell edges, interpolated linearly along the edge between its two samples."""
+    u, v = points[:, 0] - 0.5, points[:, 1] - 0.5
+    r0, c0 = np.floor(v).astype(int), np.floor(u).astype(int)
+    r1, c1 = np.minimum(r0 + 1, values.shape[0] - 1), np.minimum(c0 + 1, values.shape[1] - 1)
+    fr, fc = v - r0, u - c0
+    assert np.all((np.abs(fr) < 1e-9) | (np.abs(fc) < 1e-9)), "a segment endpoint lies inside a cell"
+    return (values[r0, c0] * (1 - fr) * (1 - fc) + values[r1, c0] * fr * (1 - fc) + values[r0, c1] * (1 - fr) * fc
+            + values[r1, c1] * fr * fc)
+
+
 @pytest.mark.parametrize("width", [1, 2, 3])
-def test_outline_marks_pixels_with_a_lower_neighbour_within_width(width):
-    x, m_p = block(0.3, 0.7)
-    x = np.concatenate([x, [[0.01, 0.5], [0.5, 0.995]]])  # blobs at the image border
-    r = Renderer(N_GRID, len(x), SIZE, REST, "particles", radius=0.1, body_outline=True, line_width=width)
+def test_outline_of_a_disk_follows_the_circle(width):
+    """f = 1 - (rho / 40)^2 around an off-grid center: the contour f = 7/16 is the circle rho = 30."""
+    shape, center, radius = (96, 96), np.array([48.3, 47.6]), 30.0
+    u, v = centers(shape)
+    rho = np.hypot(u - center[0], v - center[1])
+    values = 1.0 - (rho / 40.0) ** 2
+    level = 1.0 - (radius / 40.0) ** 2
+    seg = contour(pixel_field(values), level)
+    on = lambda p: np.abs(np.linalg.norm(p - center, axis=-1) - radius)  # distance to the true circle
+    # endpoints interpolated along the edges lie on the circle to 0.02 px (edge midpoints would be 0.5 px off),
+    # and so do the chords between them
+    assert len(seg) > 2 * np.pi * radius and on(seg).max() < 0.02 and on(seg.mean(axis=1)).max() < 0.02
+    # a closed curve: every endpoint is shared by exactly two segments
+    _, uses = np.unique(np.round(seg.reshape(-1, 2), 6), axis=0, return_counts=True)
+    assert (uses == 2).all()
+
+    image, cov = ink_of(values, level, width)
+    drawn = cov > 0
+    assert (image == image[..., :1]).all()  # black on white: grey levels only
+    assert np.abs(rho[drawn] - radius).max() <= width / 2 + 1
+    # antialiased: each pixel's coverage is clamp(width/2 + 1/2 - d, 0, 1), d its distance to the circle
+    want = np.clip(width / 2 + 0.5 - np.abs(rho - radius), 0.0, 1.0)
+    assert np.abs(cov - want).max() < 0.02
+    assert np.any((cov > 0.1) & (cov < 0.9))
+    # no gap: at every angle the pixel the circle passes through is inked, at least as much as a pixel center
+    # sqrt(2) / 2 from the line
+    t = np.linspace(0.0, 2 * np.pi, 3600, endpoint=False)
+    col, row = np.floor(center[:, None] + radius * np.stack([np.cos(t), np.sin(t)])).astype(int)
+    assert cov[row, col].min() >= min(width / 2 + 0.5 - np.sqrt(0.5), 1.0) - 0.02
+
+
+def segment_set(seg):
+    """Segments (K, 2, 2) as a sorted list of endpoint pairs, each pair sorted, rounded to 1e-9."""
+    return sorted(tuple(sorted(tuple(np.round(p, 9)) for p in s)) for s in seg)
+
+
+@pytest.mark.parametrize("values, level, want", [
+    # corners 0 (row 0, column 0) and 2 inside; center average 0.5 below 0.6: the inside corners stay apart
+    ([[1.0, 0.0], [0.0, 1.0]], 0.6, [[(0.5, 0.9), (0.9, 0.5)], [(1.1, 1.5), (1.5, 1.1)]]),
+    # ... at or above the level: the inside corners join, the segments cut off the outside corners 1 and 3
+    ([[1.0, 0.0], [0.0, 1.0]], 0.4, [[(0.5, 1.1), (0.9, 1.5)], [(1.1, 0.5), (1.5, 0.9)]]),
+    ([[1.0, 0.0], [0.0, 1.0]], 0.5, [[(0.5, 1.0), (1.0, 1.5)], [(1.0, 0.5), (1.5, 1.0)]]),
+    # the other saddle, corners 1 and 3 inside
+    ([[0.0, 1.0], [1.0, 0.0]], 0.6, [[(0.5, 1.1), (0.9, 1.5)], [(1.1, 0.5), (1.5, 0.9)]]),
+    ([[0.0, 1.0], [1.0, 0.0]], 0.4, [[(0.5, 0.9), (0.9, 0.5)], [(1.1, 1.5), (1.5, 1.1)]]),
+])
+def test_saddle_cells_are_resolved_by_the_center_average(values, level, want):
+    """Pixel samples at (column + 1/2, row + 1/2); endpoints interpolate linearly along the cell edges."""
+    seg = contour(pixel_field(np.array(values)), level)
+    assert segment_set(seg) == segment_set(np.array(want))
+
+
+@pytest.mark.parametrize("value", [0.0, 0.5, 1.0])
+def test_a_field_on_one_side_of_the_level_draws_nothing(value):
+    values = np.full((24, 24), value)  # level 0.5: below, exactly at (inside) and above
+    background = np.random.default_rng(4).integers(0, 256, size=(24, 24, 3), dtype=np.uint8)
+    image, _ = ink_of(values, 0.5, 3, background)
+    np.testing.assert_array_equal(image, background)
+    assert contour(pixel_field(values), 0.5).shape == (0, 2, 2)
+
+
+@pytest.mark.parametrize("width", [1, 3])
+def test_body_outline_surrounds_the_colored_pixels(width):
+    x, m_p = block(0.375, 0.625)
+    plain = Renderer(N_GRID, len(x), SIZE, REST, "mass").render(x, m_p)
+    r = Renderer(N_GRID, len(x), SIZE, REST, "mass", body_outline=True, line_width=width)
     img = r.render(x, m_p)
-    f = r.pixel_m.to_numpy()
+    m, ink = r.pixel_m.to_numpy(), r.ink.to_numpy()
     level = Thresholds().empty
-    below = np.zeros_like(f, dtype=bool)
-    for dr in range(-width, width + 1):
-        for dc in range(abs(dr) - width, width - abs(dr) + 1):
-            shifted = np.ones_like(below)  # pixels off the image are not below the level
-            rows = slice(max(-dr, 0), SIZE - max(dr, 0))
-            cols = slice(max(-dc, 0), SIZE - max(dc, 0))
-            shifted[rows, cols] = f[max(dr, 0): SIZE + min(dr, 0), max(dc, 0): SIZE + min(dc, 0)] >= level
-            below |= ~shifted
-    want = (f >= level) & below
-    grey = (img == np.floor(np.array(BODY_OUTLINE_COLOR) * 255 + 0.5).astype(np.uint8)).all(-1)
-    assert want.sum() > 4 * 0.3 * SIZE
-    np.testing.assert_array_equal(grey, want)
+    colored = m > level  # the pixels the colormap paints (those just above may still round to white)
+    assert (img[SIZE // 2, SIZE // 2] == RED).all() and not ((plain != 255).any(-1) & ~colored).any()
+    # the outline changes only the pixels it inks, and those fully inked take its color
+    changed = (img != plain).any(-1)
+    assert changed.sum() > 4 * 0.25 * SIZE and not (changed & (ink == 0)).any()
+    grey = np.floor(np.array(BODY_OUTLINE_COLOR) * 255 + 0.5).astype(np.uint8)
+    assert (img[ink == 1.0] == grey).all() and (ink == 1.0).sum() >= (changed.sum() if width == 3 else 1) // 3
+    # it is the contour m(x) / rest = empty: endpoints at that level, inked pixels within reach of a segment
+    seg = contour(r.pixel_m, level)
+    np.testing.assert_allclose(edge_value(m, seg.reshape(-1, 2)), level, rtol=0, atol=1e-12)
+    u, v = centers(m.shape)
+    points = np.stack([u[ink > 0], v[ink > 0]], -1)
+    assert distance_to_segments(points, seg).max() < width / 2 + 0.5
+    # it surrounds the colored pixels: every colored pixel next to a white one is inked, so no path of uninked
+    # pixels leads from the image border to a colored pixel
+    regions, _ = ndimage.label(ink == 0)  # 4-connected
+    outside = np.unique(np.concatenate([regions[0], regions[-1], regions[:, 0], regions[:, -1]]))
+    reached = np.isin(regions, outside[outside > 0])
+    assert reached.sum() > SIZE * SIZE / 2 and not (reached & colored).any()
+    np.testing.assert_array_equal(r.render(x, m_p), img)  # ink is a maximum: the same bytes in any cell order
+
+
+def test_target_outline_lies_on_the_level_set_of_the_target_field():
+    res = 2 * N_GRID  # a finer target grid (thesis 8.1)
+    target = np.zeros((res, res))
+    target[res // 4: 3 * res // 4 + 1, res // 4: 3 * res // 4 + 1] = (1.0 / res) ** 2  # rest mass of its nodes
+    r = Renderer(N_GRID, 0, SIZE, REST, "mass", line_width=2)
+    img = r.render_target(target)
+    f, ink = sampled(target, SIZE) / (1.0 / res) ** 2, r.ink.to_numpy()  # the target field, numpy reference
+    seg = contour(pixel_field(f), r.target_level)
+    np.testing.assert_allclose(edge_value(f, seg.reshape(-1, 2)), r.target_level, rtol=0, atol=1e-12)
+    # nodes 16..48 of 64 hold mass: the B-spline-smoothed field is 1/2 halfway to the empty nodes 15 and 49,
+    # x = 15.5 / 64 and 48.5 / 64, and so is the contour along the sides (the corners are rounded)
+    lo, hi = 15.5 / res * SIZE, 48.5 / res * SIZE
+    assert abs(seg[..., 0].min() - lo) < 0.05 and abs(seg[..., 0].max() - hi) < 0.05
+    assert abs(seg[..., 1].min() - (SIZE - hi)) < 0.05 and abs(seg[..., 1].max() - (SIZE - lo)) < 0.05
+    plain = r.render_target(target, outline=False)
+    changed = (img != plain).any(-1)
+    u, v = centers(f.shape)
+    assert changed.sum() > 4 * 0.4 * SIZE and not (changed & (ink == 0)).any()
+    assert distance_to_segments(np.stack([u[changed], v[changed]], -1), seg).max() < 2 / 2 + 0.5
+    assert (img[ink == 1.0] == 0).all() and (ink == 1.0).any()  # black where fully covered
+    # over any view: the same outline over an empty mass frame, blended from white by its coverage
+    frame = r.render(np.zeros((0, 2)), REST, target_outline=target)
+    np.testing.assert_array_equal(r.ink.to_numpy(), ink)
+    assert np.abs(frame.astype(int) - np.floor(255.0 * (1.0 - ink) + 0.5)[..., None]).max() <= 1
 
 
 def test_render_target_matches_rendered_particles():
