@@ -84,12 +84,13 @@ def main(argv=None) -> int:
     from .images import ImageError
     from .losses import LossError
     from .run import OutputError
+    from .runtime import ArchError
     from .scene import SceneError
     from .simulator import SimulationError
 
     try:
         return COMMANDS[args.command](args)
-    except (SceneError, ConfigError, ImageError, LossError, CheckpointError, OutputError) as e:
+    except (SceneError, ConfigError, ImageError, LossError, CheckpointError, OutputError, ArchError) as e:
         print(f"mls-mpm: error: {e}", file=sys.stderr)
         return USAGE_ERRORS
     except SimulationError as e:

@@ -39,7 +39,7 @@ class SimConfig:
     stride: control stride s; control k acts at step k*s, K = ceil(steps / s) controls.
     particles_per_cell: sets V_p^0 and the image sampling density.
     dtype: "f64" or "f32" for every field and kernel.
-    arch: "cpu", or "gpu" (Taichi picks CUDA or Vulkan), "cuda", "vulkan".
+    arch: "cpu", or "gpu" (CUDA, else Vulkan), "cuda", "vulkan"; runtime.ensure refuses one that cannot start.
     threads: CPU threads (0: all cores).
     schedule: "parallel" launches one kernel per step with parallel loops; "serial" runs all steps in one
         serial launch (faster for small scenes on a CPU, where launch cost dominates); "auto" picks

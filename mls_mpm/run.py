@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import problem as problems
+from . import problem as problems, runtime
 from .checkpoint import CheckpointError, load_npz, save_json, save_npz, split_state
 from .config import SimConfig
 from .images import splat_grid
@@ -61,12 +61,12 @@ def run_scene(scene, out_dir, resume=False, emit=print, should_stop=None, render
     """
     t0 = time.perf_counter()
     prob = problems.build(scene)
-    out = prepare_out(out_dir)
     cfg, opt = scene.sim, scene.optimize
+    sim = Simulator(cfg, prob.x0, loss=prob.loss)  # refuses a missing backend or too little memory: nothing written
+    out = prepare_out(out_dir)
     emit(f"{scene.name}: {len(prob.x0)} particles, {cfg.n_grid}^2 grid, {cfg.steps} steps, "
          f"{cfg.n_controls} control steps, loss {scene.loss.kind} on grids {list(scene.loss.grids)}, "
-         f"optimizer {opt.method}, {opt.rounds} round(s)")
-    sim = Simulator(cfg, prob.x0, loss=prob.loss)
+         f"optimizer {opt.method}, {opt.rounds} round(s), on {runtime.running_arch()}")
     ckpt = out / "checkpoint.npz"
     done, starts, opt_state, elapsed = [], [_initial_state(prob)], None, 0.0
     if resume:
@@ -135,6 +135,7 @@ def _finish(scene, prob, sim, done, starts, out, wall):
         "stop_reason": [r.reason for r in done],
         "wall_seconds": wall,
         "particles": len(prob.x0),
+        "backend": runtime.running_arch(),  # what Taichi ran on: "cpu", "cuda" or "vulkan"
         "settings": scene.to_dict(),
     }
     arrays = {

@@ -34,6 +34,13 @@ def _check_memory(cfg, n_particles):
                           "dtype f32, or raise sim.max_memory_gb")
 
 
+def _check_backend(cfg, loss):
+    """Refuse what the running backend cannot compile: Taichi's SPIR-V (Vulkan) has no 64-bit log."""
+    if runtime.running_arch() == "vulkan" and cfg.dtype == "f64" and any(g.kind == "log_mass" for g in loss.grids):
+        raise ConfigError("loss.kind = log_mass needs a 64-bit log, which Taichi's Vulkan backend cannot compile; "
+                          "use sim.dtype = f32, loss.kind = mass, or sim.arch = cpu or cuda")
+
+
 class Simulator:
     """A differentiable MLS-MPM simulation of N particles over cfg.steps steps.
 
@@ -50,6 +57,7 @@ class Simulator:
         self.n_particles = len(x0)
         if loss is not None:
             loss.check(self.n_particles)
+            _check_backend(cfg, loss)
         _check_memory(cfg, self.n_particles)
         self.loss = loss
         self._serial = cfg.serial(self.n_particles)
