@@ -26,9 +26,9 @@ def wall_mask(s: ti.template(), I, v):
 def free_velocity(s: ti.template(), f, i, j):
     """(p_i + m_i dt g) / (m_i + m_eps): eq 17 with gravity's impulse, before the walls.
 
-    m_eps = 1e-20 m_p guards the division at empty nodes (v = 0 there) without a cut or a kink: p_i and m_i
-    both carry the weights N_ip, so the quotient stays bounded and smooth as m_i -> 0, and at any node mass
-    that matters (m_i >= 1e-4 m_p) m_eps changes it by less than round-off.
+    m_eps = 1e-20 m_p (f32: 1e-12 m_p) guards the division at empty nodes (v = 0 there) without a cut or a kink:
+    p_i and m_i both carry the weights N_ip, so the quotient stays bounded and smooth as m_i -> 0, and at any
+    node mass that matters (m_i >= 1e-4 m_p) m_eps changes it by less than round-off.
     """
     m = s.grid_m[f, i, j]
     return (s.grid_p[f, i, j] + m * s.dt * ti.Vector(s.gravity)) / (m + s.m_eps)

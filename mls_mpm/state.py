@@ -68,7 +68,9 @@ class State:
         # (no float atomics); 0: atomic adds straight into grid f (GPUs, the serial schedule, the Tape)
         self.lanes = lanes
         self.lane_chunk = -(-n_particles // max(lanes, 1))  # particles per lane
-        self.m_eps = 1e-20 * cfg.m_p  # eq 17 divides by m_i + m_eps: zero at empty nodes, nowhere a cut
+        # eq 17 divides by m_i + m_eps: zero at empty nodes, nowhere a cut; in f32 large enough that m_eps^2 (in
+        # the Tape's derivative of the quotient) does not underflow to 0, still far below f32's resolution
+        self.m_eps = (1e-20 if cfg.dtype == "f64" else 1e-12) * cfg.m_p
         g = needs_grad
         N, n = n_particles, cfg.n_grid
         self.x = ti.Vector.field(2, dt_, shape=(T + 1, N), needs_grad=g)  # position x_p^n
