@@ -24,8 +24,10 @@ def _scene(case, steps):
     """A disk of `particles` particles centred in the domain, a mass loss toward a shifted disk."""
     from .config import SimConfig
 
+    arch = case.get("arch", "cpu")
     cfg = SimConfig(n_grid=case["n_grid"], steps=steps, dt=1e-4, E=1e3, nu=0.2, density=1.0, gamma=0.5,
-                    stride=min(10, steps), dtype=case["dtype"], threads=THREADS, schedule=case.get("schedule", "auto"))
+                    stride=min(10, steps), dtype=case["dtype"], threads=THREADS if arch == "cpu" else 0,
+                    schedule=case.get("schedule", "auto"), arch=arch)
     rng = np.random.default_rng(0)
     r = 0.25 * np.sqrt(rng.uniform(0, 1, case["particles"]))
     a = rng.uniform(0, 2 * np.pi, case["particles"])
@@ -67,7 +69,10 @@ def measure(case, path, steps):
         tape_gradient(cfg, init, loss, controls, state=state)
         t1 = time.perf_counter()
         out = {"tape_ms": (t1 - t0) / steps * 1e3}
+    from .runtime import running_arch
+
     out["peak_mib"] = _peak_mib()
+    out["backend"] = running_arch()
     print(json.dumps(out))
 
 
@@ -84,28 +89,73 @@ def _child(case_name, path, steps, tiny=False):
     return json.loads(lines[-1])
 
 
-def bench_gradient(quick=False, emit=print):
-    """Print the gradient benchmark as a markdown table (and return its rows)."""
+def _backend(arch):
+    """The backend `arch` starts here (runtime.ensure, in a child: the parent never starts Taichi), or exit 2
+    with runtime's one-line reason."""
+    from .runtime import ArchError
+
+    cmd = [sys.executable, "-c", "from mls_mpm import SimConfig, runtime; "
+           f"runtime.ensure(SimConfig(arch={arch!r})); print(runtime.running_arch())"]
+    res = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "TI_LOG_LEVEL": "error"})
+    if res.returncode:
+        raise ArchError((res.stderr.strip().splitlines() or ["?"])[-1].split(": ", 1)[-1])
+    return res.stdout.split()[-1]
+
+
+def bench_gradient(quick=False, emit=print, arch="cpu", out=None):
+    """Print the gradient benchmark as a markdown table (and return its rows); out: also write it there."""
+    backend = _backend(arch)
+    lines = []
+
+    def say(text):
+        lines.append(text)
+        emit(text)
+
     rows = []
     for name, case in CASES.items():
+        case = dict(case, arch=arch)
         steps = 40 if quick else case["steps"]
         man = _child(name, "manual", steps)
         tape = _child(name, "tape", steps)
         man["peak_mib"] -= _child(name, "manual", steps, tiny=True)["peak_mib"]
         tape["peak_mib"] -= _child(name, "tape", steps, tiny=True)["peak_mib"]
         rows.append((name, case, steps, man, tape))
-    emit(f"Taichi CPU, {THREADS} threads. Memory: peak RSS of the path's process minus that of the same path at "
-         "64 particles and 2 steps (Python, Taichi and the compiled kernels), i.e. the memory the data needs.\n")
-    emit("| case | fwd ms/step | particle-steps/s | manual bwd ms/step | bwd / fwd | Tape fwd+bwd ms/step | "
-         "Tape / manual (fwd+bwd) | manual MiB | Tape MiB | manual / Tape memory |")
-    emit("|---|---|---|---|---|---|---|---|---|---|")
+    where = f"Taichi CPU, {THREADS} threads" if backend == "cpu" else f"Taichi {backend} ({_device_name(backend)})"
+    memory = ("peak RSS of the path's process minus that of the same path at 64 particles and 2 steps (Python, "
+              "Taichi and the compiled kernels), i.e. the memory the data needs" if backend == "cpu" else
+              "not measured (the fields live in device memory; the estimate of the preallocated fields is in "
+              "the scaling table)")
+    say(f"{where}. Memory: {memory}.\n")
+    say("| case | fwd ms/step | particle-steps/s | manual bwd ms/step | bwd / fwd | Tape fwd+bwd ms/step | "
+        "Tape / manual (fwd+bwd) | manual MiB | Tape MiB | manual / Tape memory |")
+    say("|---|---|---|---|---|---|---|---|---|---|")
     for name, case, steps, man, tape in rows:
+        if {man["backend"], tape["backend"]} != {backend}:
+            raise RuntimeError(f"benchmark children ran on {man['backend']} / {tape['backend']}, not {backend}")
         fwd, bwd, tp = man["forward_ms"], man["backward_ms"], tape["tape_ms"]
         m_man, m_tape = man["peak_mib"], tape["peak_mib"]
+        mem = f"{m_man:.0f} | {m_tape:.0f} | {m_man / m_tape:.2f}" if backend == "cpu" else "- | - | -"
         label = f"{case['dtype']}, {case['n_grid']}^2 grid, {case['particles']} particles, {steps} steps"
-        emit(f"| {label} | {fwd:.3f} | {case['particles'] / fwd * 1e3 / 1e6:.2f} M | {bwd:.3f} | {bwd / fwd:.2f} | "
-             f"{tp:.3f} | {tp / (fwd + bwd):.2f} | {m_man:.0f} | {m_tape:.0f} | {m_man / m_tape:.2f} |")
+        say(f"| {label} | {fwd:.3f} | {case['particles'] / fwd * 1e3 / 1e6:.2f} M | {bwd:.3f} | {bwd / fwd:.2f} | "
+            f"{tp:.3f} | {tp / (fwd + bwd):.2f} | {mem} |")
+    if out:
+        from .checkpoint import atomic_write
+
+        atomic_write(out, lambda fh: fh.write(("\n".join(lines) + "\n").encode()))
     return rows
+
+
+def _device_name(backend):
+    """The GPU's name from nvidia-smi (CUDA), or the backend's name where that is not to be had."""
+    if backend == "cuda":
+        try:
+            res = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"], capture_output=True,
+                                 text=True, timeout=30)
+            if res.returncode == 0 and res.stdout.strip():
+                return res.stdout.strip().splitlines()[0]
+        except (OSError, subprocess.TimeoutExpired):
+            pass
+    return "device name not known" if backend == "cuda" else "a Vulkan device"
 
 
 # Scaling sweeps (issue 5): one quantity varied from the large case at a time.

@@ -71,9 +71,15 @@ def build_parser():
                             "over the settings of SCENE")
     bench.add_argument("scene", nargs="?", help="scene file (tradeoff only)")
     bench.add_argument("--out", help="tradeoff: output folder (default: renders/tradeoff_<scene name>/); "
-                                     "scaling: folder of scaling.png (default: .)")
+                                     "scaling: folder of scaling.png (default: .); gradient: also write the "
+                                     "table to this file")
     bench.add_argument("--quick", action="store_true",
                        help="gradient: 40 steps; tradeoff: fewer rows and iterations (under 10 minutes)")
+    bench.add_argument("--arch", choices=["cpu", "gpu", "cuda", "vulkan"], default="cpu",
+                       help="gradient: the Taichi backend measured")
+    bench.add_argument("--max-seconds", type=float, default=None,
+                       help="tradeoff: wall-time budget of one row; a row over it is stopped and marked (default: "
+                            "no limit)")
     return p
 
 
@@ -154,7 +160,7 @@ def cmd_bench(args):
     if args.what == "gradient":
         from .bench import bench_gradient
 
-        bench_gradient(quick=args.quick)
+        bench_gradient(quick=args.quick, arch=args.arch, out=args.out)
         return 0
     if args.what == "scaling":
         from .bench import bench_scaling
@@ -166,7 +172,7 @@ def cmd_bench(args):
 
     if not args.scene:
         raise SceneError("bench tradeoff: expected a SCENE file, e.g. mls-mpm bench tradeoff scenes/circle_to_torus.toml")
-    bench_tradeoff(args.scene, out=args.out, quick=args.quick)
+    bench_tradeoff(args.scene, out=args.out, quick=args.quick, max_seconds=args.max_seconds)
     return 0
 
 

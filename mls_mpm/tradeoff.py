@@ -58,14 +58,20 @@ def rows_for(scene, quick):
     return [(name, group, base + ov) for name, group, ov in rows]
 
 
-def measure(scene_path, name, overrides, out_dir):
-    """Run one row in its own process; (wall seconds, summary dict or None, status)."""
+def measure(scene_path, name, overrides, out_dir, max_seconds=None):
+    """Run one row in its own process; (wall seconds, summary dict or None, status).
+
+    A row still running after max_seconds is stopped and recorded as over the budget (no accuracy figures).
+    """
     cmd = [sys.executable, "-m", "mls_mpm.cli", "run", str(scene_path), "--out", str(out_dir), "--no-render",
            "--quiet"]
     for ov in overrides:
         cmd += ["--set", ov]
     t0 = time.perf_counter()
-    res = subprocess.run(cmd, capture_output=True, text=True)
+    try:
+        res = subprocess.run(cmd, capture_output=True, text=True, timeout=max_seconds)
+    except subprocess.TimeoutExpired:
+        return time.perf_counter() - t0, None, f"stopped: over the {max_seconds:g} s budget of a row"
     wall = time.perf_counter() - t0
     summary_path = Path(out_dir) / "summary.json"
     if res.returncode or not summary_path.is_file():
@@ -86,7 +92,8 @@ def pareto(rows):
     return sorted(front, key=lambda r: float(r["wall_seconds"]))
 
 
-def bench_tradeoff(scene_path, out=None, quick=False, emit=print):
+def bench_tradeoff(scene_path, out=None, quick=False, emit=print, max_seconds=None):
+    """The sweep of `rows_for`, resumable; max_seconds: the wall-time budget of one row (None: no limit)."""
     from .scene import load_scene
 
     scene = load_scene(scene_path)
@@ -102,7 +109,7 @@ def bench_tradeoff(scene_path, out=None, quick=False, emit=print):
     for i, (name, group, overrides) in enumerate(plan, 1):
         if name in done:
             continue
-        wall, summary, status = measure(scene.path, name, overrides, out / "runs" / _slug(name))
+        wall, summary, status = measure(scene.path, name, overrides, out / "runs" / _slug(name), max_seconds)
         row = {"row": name, "group": group, "overrides": " ".join(overrides), "wall_seconds": f"{wall:.2f}",
                "status": status}
         if summary:

@@ -1,0 +1,97 @@
+"""Benchmark plumbing (mls_mpm/tradeoff.py, mls_mpm/bench.py, benchmarks/report.py) without timing anything: the
+tradeoff rows asked for by issue 5, the Pareto front, a row stopped at its time budget, the guide computed from a
+sweep, and a GPU benchmark refused where there is no GPU. The figures themselves are in BENCHMARKS.md.
+"""
+import csv
+import importlib.util
+from pathlib import Path
+
+import pytest
+
+from mls_mpm import runtime
+from mls_mpm.bench import bench_gradient
+from mls_mpm.cli import build_parser
+from mls_mpm.runtime import ArchError
+from mls_mpm.scene import load_scene
+from mls_mpm.tradeoff import FIELDS, measure, pareto, rows_for
+
+ROOT = Path(__file__).resolve().parents[1]
+TORUS = ROOT / "scenes" / "circle_to_torus.toml"
+TINY = ROOT / "tests" / "data" / "tiny.toml"
+
+
+def report_module():
+    spec = importlib.util.spec_from_file_location("report", ROOT / "benchmarks" / "report.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_full_sweep_has_every_setting_of_issue_5():
+    """Grid 32/64/128, particles per cell 1/4/9, stride 1/5/10/25, iterations 1/2/4/8 and converged, the three
+    optimizers, multi-resolution loss grids, penalty, the other dtype: each row changes one setting only."""
+    scene = load_scene(TORUS)  # 32^2, 16 per cell, stride 10, gd, 10 iterations, f64
+    rows = {name: (group, ov) for name, group, ov in rows_for(scene, quick=False)}
+    assert set(rows) == {"base", "n_grid=64", "n_grid=128", "ppc=1", "ppc=4", "ppc=9", "stride=1", "stride=5",
+                         "stride=25", "iterations=1", "iterations=2", "iterations=4", "iterations=8", "converged",
+                         "method=adam", "method=lbfgs", "grids=[16, 32]", "penalty=10", "f32"}
+    assert rows["base"] == ("base", [])
+    assert rows["stride=1"] == ("control stride", ["control.stride=1"])
+    # a finer grid keeps the simulated time and dt below the CFL limit: 4x the steps at a quarter of dt
+    n128 = dict(ov.split("=", 1) for ov in rows["n_grid=128"][1])
+    assert (n128["sim.n_grid"], n128["sim.steps"], n128["control.stride"]) == ("128", "1200", "40")
+    assert float(n128["sim.dt"]) == pytest.approx(scene.sim.dt / 4)
+    quick = {name for name, _, _ in rows_for(scene, quick=True)}
+    assert quick < set(rows) and "n_grid=128" not in quick and "iterations=4" not in quick
+    assert all(ov[0] == "optimize.iterations=2" for _, _, ov in rows_for(scene, quick=True))
+
+
+def row(name, t, q, status="ok"):
+    return {"row": name, "wall_seconds": str(t), "loss_ratio": str(q), "status": status}
+
+
+def test_pareto_front_keeps_only_undominated_rows():
+    rows = [row("a", 1.0, 0.5), row("b", 2.0, 0.1), row("c", 3.0, 0.2), row("d", 2.0, 0.5), row("e", 0.5, 0.9),
+            row("f", 0.1, 0.01, status="failed")]
+    assert [r["row"] for r in pareto(rows)] == ["e", "a", "b"]  # c is beaten by b, d by a; f did not finish
+
+
+def test_row_over_its_budget_is_stopped_and_marked(tmp_path):
+    wall, summary, status = measure(TINY, "base", [], tmp_path / "run", max_seconds=0.5)
+    assert summary is None and status == "stopped: over the 0.5 s budget of a row"
+    assert 0.5 <= wall < 30.0
+    assert not (tmp_path / "run" / "summary.json").exists()
+
+
+def test_guide_ranks_rows_by_time_and_lists_stopped_ones(tmp_path):
+    table = tmp_path / "tradeoff.csv"
+    with open(table, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=FIELDS, extrasaction="ignore")
+        w.writeheader()
+        w.writerow(dict(row("base", 10.0, 0.2), iou="0.8", overrides=""))
+        w.writerow(dict(row("ppc=1", 5.0, 0.4), iou="0.7", overrides="sim.particles_per_cell=1"))
+        w.writerow(dict(row("stride=5", 20.0, 0.1), iou="0.9", overrides="control.stride=5"))
+        w.writerow(dict(row("n_grid=128", 300.0, "", status="stopped: over the 300 s budget of a row"),
+                        overrides="sim.n_grid=128"))
+    lines = report_module().guide(table).splitlines()[2:]
+    assert [ln.split(" (")[0] for ln in lines] == ["| ppc=1", "| base", "| stride=5", "| n_grid=128"]
+    assert "0.50x (5 s)" in lines[0] and "faster; costs 100% in loss reached" in lines[0]
+    assert "slower; gains 50% in loss reached" in lines[2]
+    assert "> 30x (> 300 s)" in lines[3] and "stopped: over the 300 s budget" in lines[3]
+
+
+def test_bench_options_parse():
+    p = build_parser()
+    a = p.parse_args(["bench", "gradient", "--arch", "vulkan", "--out", "g.md"])
+    assert (a.what, a.arch, a.out, a.max_seconds) == ("gradient", "vulkan", "g.md", None)
+    a = p.parse_args(["bench", "tradeoff", "s.toml", "--max-seconds", "60"])
+    assert (a.what, a.scene, a.arch, a.max_seconds) == ("tradeoff", "s.toml", "cpu", 60.0)
+
+
+def test_gpu_gradient_benchmark_refused_without_a_gpu(tmp_path, monkeypatch):
+    if runtime._driver_present("cuda"):
+        pytest.skip("a CUDA driver is installed here")
+    monkeypatch.setenv("VK_ICD_FILENAMES", str(tmp_path / "no_driver.json"))
+    with pytest.raises(ArchError, match=r"^sim.arch = gpu: no cuda or vulkan device .* use sim.arch = cpu$"):
+        bench_gradient(quick=True, arch="gpu", out=tmp_path / "gpu.md", emit=lambda *_: None)
+    assert not (tmp_path / "gpu.md").exists()
