@@ -4,11 +4,13 @@ Every row is one `mls-mpm run` of the scene with a few `--set` overrides, in its
 records wall time and the accuracy reached (loss_final / loss_initial, iou, mass_outside_target). Rows vary
 one setting at a time from the scene's own settings. Rows already in tradeoff.csv are skipped, so an
 interrupted sweep resumes. The Pareto front (no other row both faster and more accurate in loss) is marked in
-tradeoff.png and printed.
+tradeoff.png and printed. A row stopped at its time budget (--max-seconds) is measured again by a sweep
+with a larger budget.
 """
 import csv
 import json
 import math
+import re
 import subprocess
 import sys
 import time
@@ -105,9 +107,10 @@ def bench_tradeoff(scene_path, out=None, quick=False, emit=print, max_seconds=No
         with open(table, newline="") as fh:
             done = {r["row"]: r for r in csv.DictReader(fh)}
     plan = rows_for(scene, quick)
-    emit(f"tradeoff sweep of {scene.name}: {len(plan)} rows ({len(done)} already measured) -> {out}")
+    measured = sum(not _retry(r, max_seconds) for r in done.values())
+    emit(f"tradeoff sweep of {scene.name}: {len(plan)} rows ({measured} already measured) -> {out}")
     for i, (name, group, overrides) in enumerate(plan, 1):
-        if name in done:
+        if name in done and not _retry(done[name], max_seconds):
             continue
         wall, summary, status = measure(scene.path, name, overrides, out / "runs" / _slug(name), max_seconds)
         row = {"row": name, "group": group, "overrides": " ".join(overrides), "wall_seconds": f"{wall:.2f}",
@@ -128,6 +131,12 @@ def bench_tradeoff(scene_path, out=None, quick=False, emit=print, max_seconds=No
         emit(f"  {r['row']:<22s} {float(r['wall_seconds']):7.1f} s  loss ratio {float(r['loss_ratio']):.3g}  "
              f"iou {r['iou']}  ({r['overrides'] or 'scene settings'})")
     return rows, front
+
+
+def _retry(row, max_seconds):
+    """Whether a row already in the table is measured again: one stopped at a smaller budget than this one."""
+    budget = re.fullmatch(r"stopped: over the (\S+) s budget of a row", row["status"])
+    return bool(budget) and (max_seconds is None or max_seconds > float(budget.group(1)))
 
 
 def _slug(name):

@@ -13,7 +13,7 @@ from mls_mpm.bench import bench_gradient
 from mls_mpm.cli import build_parser
 from mls_mpm.runtime import ArchError
 from mls_mpm.scene import load_scene
-from mls_mpm.tradeoff import FIELDS, measure, pareto, rows_for
+from mls_mpm.tradeoff import FIELDS, _retry, measure, pareto, rows_for
 
 ROOT = Path(__file__).resolve().parents[1]
 TORUS = ROOT / "scenes" / "circle_to_torus.toml"
@@ -61,6 +61,13 @@ def test_row_over_its_budget_is_stopped_and_marked(tmp_path):
     assert summary is None and status == "stopped: over the 0.5 s budget of a row"
     assert 0.5 <= wall < 30.0
     assert not (tmp_path / "run" / "summary.json").exists()
+
+
+def test_stopped_row_is_measured_again_only_with_a_larger_budget():
+    stopped = row("converged", 300.0, "", status="stopped: over the 300 s budget of a row")
+    assert _retry(stopped, 600) and _retry(stopped, None)  # None: no limit
+    assert not _retry(stopped, 300) and not _retry(stopped, 120)
+    assert not _retry(row("base", 10.0, 0.2), None) and not _retry(row("x", 1.0, 0.1, status="failed"), None)
 
 
 def test_guide_ranks_rows_by_time_and_lists_stopped_ones(tmp_path):
