@@ -58,10 +58,10 @@ def guide(table):
         t, q, i = float(r["wall_seconds"]), float(r["loss_ratio"]), float(r["iou"])
         if r["row"] == "base":
             verdict = "reference"
-        elif t < t0:
-            verdict = f"faster; {'costs' if q > q0 else 'also gains'} {abs(q / q0 - 1):.0%} in loss reached"
-        else:
-            verdict = f"slower; {'gains' if q < q0 else 'and loses'} {abs(q / q0 - 1):.0%} in loss reached"
+        else:  # loss ratios span decades: compare them as a factor
+            better = "better" if q < q0 else "worse"
+            verdict = (f"{'faster' if t < t0 else 'slower'}; {'also ' if t < t0 and q < q0 else ''}"
+                       f"{better}: {q / q0:.3g}x the loss ratio")
         lines.append(f"| {r['row']} (`{r['overrides'] or '-'}`) | {t / t0:.2f}x ({t:.0f} s) | {q:.3g} | {i:.3f} "
                      f"(base {i0:.3f}) | {verdict} |")
     for r in over:

@@ -223,9 +223,8 @@ def to_u8(color):
 
 @ti.func
 def put(image: ti.template(), r, c, rgb):
-    """Write the bytes rgb to pixel (r, c) of a uint8 (size, size, 3) array."""
-    for k in ti.static(range(3)):
-        image[r, c, k] = rgb[k]
+    """Write the bytes rgb to pixel (r, c) of the image field (3 x uint8 per pixel, [row, column])."""
+    image[r, c] = rgb
 
 
 @ti.func
@@ -453,7 +452,7 @@ def draw_outline(field: ti.template(), ink: ti.template(), image: ti.template(),
     for r, c in ink:
         alpha = ink[r, c]
         if alpha > 0.0:
-            old = ti.Vector([ti.cast(image[r, c, k], float) for k in ti.static(range(3))]) / 255.0
+            old = ti.cast(image[r, c], float) / 255.0
             put(image, r, c, to_u8(old + (color - old) * alpha))
 
 
@@ -489,6 +488,12 @@ def colormap_kernel(t: ti.types.ndarray(), s: ti.types.ndarray(), rgb: ti.types.
         color = to_u8(palette(s[k]))
         for d in ti.static(range(3)):
             rgb[k, d] = color[d]
+
+
+@ti.kernel
+def fill_white(image: ti.template()):
+    for r, c in image:
+        image[r, c] = ti.Vector([255, 255, 255], ti.u8)
 
 
 @ti.kernel
@@ -554,7 +559,7 @@ class Renderer:
         self.line_c = ti.Vector.field(3, float, shape=(n, s)) if mode == "color" else None  # the same for c
         self.box = ti.field(ti.i32, shape=4)  # pixel rows and columns reached by mass (`live_box`)
         self.pixel_m = ti.field(float, shape=(s, s))  # m(x) / rest_node_mass at each pixel center, [row, column]
-        self.image = ti.field(ti.u8, shape=(s, s, 3))  # the frame being drawn, RGB bytes [row, column, channel]
+        self.image = ti.Vector.field(3, ti.u8, shape=(s, s))  # the frame being drawn, RGB bytes [row, column]
         self.ink = ti.field(float, shape=(s, s))  # an outline's coverage of each pixel in [0, 1] (`draw_outline`)
         self._identity = np.tile(np.eye(2, dtype=self.real), (self.n_particles, 1, 1))  # F of plain dots
         self._target = None  # (res, grid, line, pixel field, the array uploaded), made for the first target grid
@@ -628,7 +633,7 @@ class Renderer:
     def _blank(self):
         """The image field, white. The frame kernels draw into this field rather than into a numpy array: on
         a GPU Taichi does not upload an array that a kernel only writes, so a white array would not stay white."""
-        self.image.fill(255)
+        fill_white(self.image)
         return self.image
 
     def _outline(self, field, image, level, color):

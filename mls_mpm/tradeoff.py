@@ -110,19 +110,22 @@ def bench_tradeoff(scene_path, out=None, quick=False, emit=print, max_seconds=No
     measured = sum(not _retry(r, max_seconds) for r in done.values())
     emit(f"tradeoff sweep of {scene.name}: {len(plan)} rows ({measured} already measured) -> {out}")
     for i, (name, group, overrides) in enumerate(plan, 1):
-        if name in done and not _retry(done[name], max_seconds):
-            continue
-        wall, summary, status = measure(scene.path, name, overrides, out / "runs" / _slug(name), max_seconds)
-        row = {"row": name, "group": group, "overrides": " ".join(overrides), "wall_seconds": f"{wall:.2f}",
-               "status": status}
-        if summary:
-            row.update(loss_ratio=f"{summary['loss_final'] / summary['loss_initial']:.6g}",
-                       iou=f"{summary['iou']:.4f}", mass_outside_target=f"{summary['mass_outside_target']:.4f}",
-                       iterations=summary["iterations"], converged=summary["converged"])
-        done[name] = row
-        _write_csv(table, [done[n] for n, _, _ in plan if n in done])
-        emit(f"[{i}/{len(plan)}] {name:<22s} {wall:7.1f} s  loss ratio {row.get('loss_ratio', '-'):>10s}  "
-             f"iou {row.get('iou', '-'):>6s}  {status if status != 'ok' else ''}")
+        earlier = name in done and not _retry(done[name], max_seconds)
+        if not earlier:
+            wall, summary, status = measure(scene.path, name, overrides, out / "runs" / _slug(name), max_seconds)
+            row = {"row": name, "group": group, "overrides": " ".join(overrides), "wall_seconds": f"{wall:.2f}",
+                   "status": status}
+            if summary:
+                row.update(loss_ratio=f"{summary['loss_final'] / summary['loss_initial']:.6g}",
+                           iou=f"{summary['iou']:.4f}", mass_outside_target=f"{summary['mass_outside_target']:.4f}",
+                           iterations=summary["iterations"], converged=summary["converged"])
+            done[name] = row
+            _write_csv(table, [done[n] for n, _, _ in plan if n in done])
+        row = done[name]
+        status = row["status"] if row["status"] != "ok" else ""
+        emit(f"[{i}/{len(plan)}] {name:<22s} {float(row['wall_seconds']):7.1f} s  loss ratio "
+             f"{row.get('loss_ratio') or '-':>10s}  iou {row.get('iou') or '-':>6s}  {status}"
+             f"{'  (measured earlier)' if earlier else ''}")
     rows = [done[n] for n, _, _ in plan if n in done]
     front = pareto(rows)
     scatter(rows, front, out / "tradeoff.png", f"{scene.name}: accuracy against time")

@@ -82,8 +82,8 @@ def test_guide_ranks_rows_by_time_and_lists_stopped_ones(tmp_path):
                         overrides="sim.n_grid=128"))
     lines = report_module().guide(table).splitlines()[2:]
     assert [ln.split(" (")[0] for ln in lines] == ["| ppc=1", "| base", "| stride=5", "| n_grid=128"]
-    assert "0.50x (5 s)" in lines[0] and "faster; costs 100% in loss reached" in lines[0]
-    assert "slower; gains 50% in loss reached" in lines[2]
+    assert "0.50x (5 s)" in lines[0] and "faster; worse: 2x the loss ratio" in lines[0]
+    assert "slower; better: 0.5x the loss ratio" in lines[2] and "| reference |" in lines[1]
     assert "> 30x (> 300 s)" in lines[3] and "stopped: over the 300 s budget" in lines[3]
 
 

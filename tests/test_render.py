@@ -227,7 +227,7 @@ def pixel_field(values):
 def ink_of(values, level, width, background=None):
     """(the image with the outline drawn in black, its coverage 1 - byte / 255 over white) of a pixel field."""
     f = pixel_field(values)
-    field = ti.field(ti.u8, shape=values.shape + (3,))  # the Renderer's kernels draw into a Taichi field
+    field = ti.Vector.field(3, ti.u8, shape=values.shape)  # the Renderer's kernels draw into a Taichi field
     field.from_numpy(np.full(values.shape + (3,), 255, np.uint8) if background is None else background)
     draw_outline(f, ti.field(float, shape=values.shape), field, level, float(width), ti.Vector([0.0, 0.0, 0.0]))
     image = field.to_numpy()
