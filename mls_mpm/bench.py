@@ -90,9 +90,9 @@ def _child(case_name, path, steps, tiny=False):
     return json.loads(lines[-1])
 
 
-def _backend(arch):
-    """The backend `arch` starts here (runtime.ensure, in a child: the parent never starts Taichi), or exit 2
-    with runtime's one-line reason."""
+def backend_here(arch):
+    """The backend `arch` starts on this machine (runtime.ensure, in a child process, so that the caller's
+    Taichi stays as it is), or ArchError with runtime's one-line reason."""
     from .runtime import ArchError
 
     cmd = [sys.executable, "-c", "from mls_mpm import SimConfig, runtime; "
@@ -105,7 +105,7 @@ def _backend(arch):
 
 def bench_gradient(quick=False, emit=print, arch="cpu", out=None):
     """Print the gradient benchmark as a markdown table (and return its rows); out: also write it there."""
-    backend = _backend(arch)
+    backend = backend_here(arch)
     lines = []
 
     def say(text):
@@ -125,8 +125,9 @@ def bench_gradient(quick=False, emit=print, arch="cpu", out=None):
         steps = 40 if quick else case["steps"]
         man = warm(case, "manual", steps)
         tape = warm(case, "tape", steps)
-        man["peak_mib"] -= warm(case, "manual", steps, tiny=True)["peak_mib"]
-        tape["peak_mib"] -= warm(case, "tape", steps, tiny=True)["peak_mib"]
+        if backend == "cpu":  # on a GPU the fields live in device memory: host RSS says nothing of them
+            man["peak_mib"] -= warm(case, "manual", steps, tiny=True)["peak_mib"]
+            tape["peak_mib"] -= warm(case, "tape", steps, tiny=True)["peak_mib"]
         rows.append((name, case, steps, man, tape))
     where = f"Taichi CPU, {THREADS} threads" if backend == "cpu" else f"Taichi {backend} ({_device_name(backend)})"
     memory = ("peak RSS of the path's process minus that of the same path at 64 particles and 2 steps (Python, "

@@ -21,7 +21,9 @@ from PIL import Image
 
 from conftest import rel_err
 from mls_mpm import runtime
+from mls_mpm.bench import backend_here
 from mls_mpm.checkpoint import load_npz
+from mls_mpm.runtime import ArchError
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ROOT / "tests" / "data" / "tiny.toml"
@@ -58,12 +60,10 @@ def test_missing_gpu_is_refused(tmp_path, flags, arch):
 
 @pytest.fixture(scope="module")
 def vulkan():
-    probe = subprocess.run([sys.executable, "-c", "from mls_mpm import SimConfig, runtime; "
-                            "runtime.ensure(SimConfig(arch='vulkan')); print(runtime.running_arch())"],
-                           cwd=ROOT, capture_output=True, text=True, timeout=300)
-    if probe.returncode or probe.stdout.split()[-1:] != ["vulkan"]:
-        pytest.skip("no Vulkan device on this machine (.ci/run installs Mesa's lavapipe): "
-                    + (probe.stderr.strip().splitlines() or ["?"])[-1])
+    try:
+        assert backend_here("vulkan") == "vulkan"
+    except ArchError as e:
+        pytest.skip(f"no Vulkan device on this machine (.ci/run installs Mesa's lavapipe): {e}")
 
 
 @pytest.fixture(scope="module")
