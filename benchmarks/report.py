@@ -48,11 +48,11 @@ def startup(cache_dir):
 def guide(table):
     """'To go faster, change X; it costs Y': every tradeoff row against the scene's own settings."""
     with open(table, newline="") as fh:
-        rows = [r for r in csv.DictReader(fh) if r["status"] == "ok"]
+        every = list(csv.DictReader(fh))
+    rows = [r for r in every if r["status"] == "ok"]
+    over = [r for r in every if r["status"] != "ok"]
     base = next(r for r in rows if r["row"] == "base")
     t0, q0, i0 = float(base["wall_seconds"]), float(base["loss_ratio"]), float(base["iou"])
-    with open(table, newline="") as fh:
-        over = [r for r in csv.DictReader(fh) if r["status"] != "ok"]
     lines = ["| change | time vs scene settings | loss_final / loss_initial | iou | verdict |", "|---|---|---|---|---|"]
     for r in sorted(rows, key=lambda r: float(r["wall_seconds"])):
         t, q, i = float(r["wall_seconds"]), float(r["loss_ratio"]), float(r["iou"])

@@ -157,6 +157,13 @@ def cmd_render(args):
 
 
 def cmd_bench(args):
+    from .scene import SceneError
+
+    if args.arch != "cpu" and args.what != "gradient":
+        raise SceneError(f"bench {args.what}: --arch applies to bench gradient only; drop it")
+    if args.max_seconds is not None and (args.what != "tradeoff" or not args.max_seconds > 0):
+        raise SceneError(f"bench {args.what}: --max-seconds {args.max_seconds:g}: expected seconds > 0, with bench "
+                         "tradeoff only")
     if args.what == "gradient":
         from .bench import bench_gradient
 
@@ -167,7 +174,6 @@ def cmd_bench(args):
 
         bench_scaling(quick=args.quick, plot_path=Path(args.out or ".") / "scaling.png")
         return 0
-    from .scene import SceneError
     from .tradeoff import bench_tradeoff
 
     if not args.scene:

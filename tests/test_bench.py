@@ -10,7 +10,7 @@ import pytest
 
 from mls_mpm import runtime
 from mls_mpm.bench import bench_gradient
-from mls_mpm.cli import build_parser
+from mls_mpm.cli import build_parser, main
 from mls_mpm.runtime import ArchError
 from mls_mpm.scene import load_scene
 from mls_mpm.tradeoff import FIELDS, _retry, measure, pareto, rows_for
@@ -93,6 +93,20 @@ def test_bench_options_parse():
     assert (a.what, a.arch, a.out, a.max_seconds) == ("gradient", "vulkan", "g.md", None)
     a = p.parse_args(["bench", "tradeoff", "s.toml", "--max-seconds", "60"])
     assert (a.what, a.scene, a.arch, a.max_seconds) == ("tradeoff", "s.toml", "cpu", 60.0)
+
+
+@pytest.mark.parametrize("argv, says", [
+    (["bench", "scaling", "--arch", "gpu"], "bench scaling: --arch applies to bench gradient only; drop it"),
+    (["bench", "tradeoff", "s.toml", "--arch", "vulkan"], "bench tradeoff: --arch applies to bench gradient only"),
+    (["bench", "gradient", "--max-seconds", "60"], "bench gradient: --max-seconds 60: expected seconds > 0, with "
+                                                   "bench tradeoff only"),
+    (["bench", "tradeoff", "s.toml", "--max-seconds", "0"], "bench tradeoff: --max-seconds 0: expected seconds > 0"),
+])
+def test_bench_options_that_do_not_apply_are_refused(argv, says, capsys):
+    """One line, exit 2, before anything is measured (no scene is read: s.toml does not exist)."""
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"mls-mpm: error: {says}") and len(err.splitlines()) == 1
 
 
 def test_gpu_gradient_benchmark_refused_without_a_gpu(tmp_path, monkeypatch):
