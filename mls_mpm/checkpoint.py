@@ -5,9 +5,10 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+from .errors import UserError
 
 
-class CheckpointError(ValueError):
+class CheckpointError(UserError):
     """A result or checkpoint file is missing, corrupt or from another scene."""
 
 

@@ -85,18 +85,11 @@ def build_parser():
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    from .checkpoint import CheckpointError
-    from .config import ConfigError
-    from .images import ImageError
-    from .losses import LossError
-    from .run import OutputError
-    from .runtime import ArchError
-    from .scene import SceneError
-    from .simulator import SimulationError
+    from .errors import SimulationError, UserError
 
     try:
         return COMMANDS[args.command](args)
-    except (SceneError, ConfigError, ImageError, LossError, CheckpointError, OutputError, ArchError) as e:
+    except UserError as e:
         print(f"mls-mpm: error: {e}", file=sys.stderr)
         return USAGE_ERRORS
     except SimulationError as e:

@@ -5,6 +5,7 @@ import math
 import os
 import warnings
 from dataclasses import dataclass, fields
+from .errors import UserError
 
 BOUNDARIES = ("slip", "sticky")
 DTYPES = ("f32", "f64")
@@ -18,7 +19,7 @@ class CFLWarning(UserWarning):
     """dt exceeds the CFL limit of the material and grid."""
 
 
-class ConfigError(ValueError):
+class ConfigError(UserError):
     """A setting has a value the simulator cannot use; the message names it and what is expected."""
 
 

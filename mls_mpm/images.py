@@ -10,13 +10,14 @@ from pathlib import Path
 
 import numpy as np
 from PIL import Image, UnidentifiedImageError
+from .errors import UserError
 
 WHITE = 0.9  # a pixel whose R, G and B all exceed this is background
 OPAQUE = 0.5  # a pixel whose alpha is at most this is background
 JITTER = 0.5  # lattice jitter, as a fraction of the sub-cell spacing
 
 
-class ImageError(ValueError):
+class ImageError(UserError):
     """An image is missing, unreadable or holds no material; the message is one line naming the file."""
 
 

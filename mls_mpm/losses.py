@@ -10,9 +10,10 @@ import numpy as np
 import taichi as ti
 
 from .kernels import stencil, weights
+from .errors import UserError
 
 
-class LossError(ValueError):
+class LossError(UserError):
     """A loss was given data of the wrong shape or value."""
 
 

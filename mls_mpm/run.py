@@ -18,11 +18,12 @@ from .config import SimConfig
 from .images import splat_grid
 from .optimize import METHODS
 from .simulator import Simulator
+from .errors import UserError
 
 STATE_KEYS = ("x", "v", "C", "F")
 
 
-class OutputError(ValueError):
+class OutputError(UserError):
     """The output folder cannot be used."""
 
 

@@ -12,13 +12,14 @@ import os
 
 import taichi as ti
 from taichi.lang import impl
+from .errors import UserError
 
 # what each sim.arch may run on, in the order tried
 BACKENDS = {"cpu": ("cpu",), "gpu": ("cuda", "vulkan"), "cuda": ("cuda",), "vulkan": ("vulkan",)}
 NEEDS = {"cuda": "an NVIDIA driver (libcuda.so)", "vulkan": "a Vulkan driver (libvulkan.so.1 and an ICD)"}
 
 
-class ArchError(RuntimeError):
+class ArchError(UserError):
     """The Taichi backend that sim.arch asks for is not available on this machine."""
 
 

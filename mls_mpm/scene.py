@@ -19,6 +19,7 @@ except ModuleNotFoundError:  # Python 3.10
 
 from .config import ARCHS, BOUNDARIES, DTYPES, SCHEDULES, ConfigError, SimConfig
 from .images import ImageError, load_image
+from .errors import UserError
 
 LOSS_KINDS = ("position", "mass", "log_mass", "color")
 METHODS = ("gd", "adam", "lbfgs", "positions")
@@ -28,7 +29,7 @@ TARGET_DENSITY = ("match", "own")
 MIN_LOSS_GRID = 4  # a loss grid needs at least one full 4x4 stencil
 
 
-class SceneError(ValueError):
+class SceneError(UserError):
     """A scene file cannot be used; the message is one line naming the file, the key and what is expected."""
 
 

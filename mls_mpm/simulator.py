@@ -8,16 +8,13 @@ from adjoint.step import run_reverse_serial, substep_reverse
 
 from . import losses, runtime
 from .config import ConfigError
+from .errors import SimulationError
 from .losses import ColorLoss, PositionLoss
 from .state import (FAULT_LEFT_GRID, FAULT_NON_FINITE, FAULT_NONE, State, available_bytes, estimate_bytes, read_step,
                     upload_loss, write_step)
 from .step import clear_grid, run_serial, substep
 from .tape import tape_gradient
 from .transfer import check_step
-
-
-class SimulationError(RuntimeError):
-    """The simulation left the grid or went non-finite; the message names the step and the particle."""
 
 
 def _check_memory(cfg, n_particles):
