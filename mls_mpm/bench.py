@@ -178,7 +178,7 @@ SWEEPS = {
 def bench_scaling(quick=False, emit=print, plot_path="scaling.png"):
     """Forward, manual backward and Tape ms/step and peak memory against particles, steps and grid."""
     from .config import SimConfig
-    from .state import estimate_bytes
+    from .memory import estimate_bytes
 
     base = dict(CASES["large"], steps=100 if quick else 200)
     results = {}
@@ -196,7 +196,7 @@ def bench_scaling(quick=False, emit=print, plot_path="scaling.png"):
             results.setdefault(key, []).append((v, man["forward_ms"], man["backward_ms"], tape["tape_ms"]))
             emit(f"| {key} | {v} | {man['forward_ms']:.3f} | {man['backward_ms']:.3f} | {tape['tape_ms']:.3f} | "
                  f"{man['peak_mib']:.0f} | {tape['peak_mib']:.0f} | {est:.0f} |")
-    per = 12 * 4  # x, v, C, F: 12 f32 words per particle-step (state.estimate_bytes)
+    per = 12 * 4  # x, v, C, F: 12 f32 words per particle-step (memory.estimate_bytes)
     emit(f"\nField memory grows linearly in particles x steps: {per} bytes per particle-step in f32 (twice that in "
          f"f64), plus 20 bytes per grid node per step (64^2: 80 KiB per step). 24 GiB holds about "
          f"{24 * 2 ** 30 / per / 1e6:.0f} million particle-steps in f32, e.g. 64k particles x "

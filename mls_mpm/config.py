@@ -13,6 +13,14 @@ ARCHS = ("cpu", "gpu", "cuda", "vulkan")
 SCHEDULES = ("auto", "serial", "parallel")
 SERIAL_BELOW = 4000  # particles + grid nodes under which "auto" runs serially on a CPU
 STENCIL = 4  # the cubic B-spline touches 4 nodes per axis (base = floor(x/dx) - 1)
+MAX_THREADS = 1024  # CPU threads a simulation may ask for
+MAX_PARTICLES_PER_CELL = 1024  # particles sampled per cell (per cell volume in 3D)
+
+
+def min_n_grid(bound: int) -> int:
+    """The smallest grid for walls `bound` cells wide: the default region, (bound + 2) cells inside each edge,
+    must hold 2 cells, which also leaves room for the 4-node stencil inside the walls."""
+    return 2 * (bound + 2) + 2
 
 
 class CFLWarning(UserWarning):
@@ -69,7 +77,7 @@ class SimConfig:
 
     def __post_init__(self):
         object.__setattr__(self, "gravity", tuple(float(g) for g in self.gravity))
-        _check_int(self, "n_grid", 2 * self.bound + STENCIL if isinstance(self.bound, int) else STENCIL)
+        _check_int(self, "n_grid", min_n_grid(self.bound) if isinstance(self.bound, int) else min_n_grid(0))
         _check_int(self, "steps", 1)
         _check_int(self, "stride", 1)
         _check_int(self, "bound", 0)

@@ -12,3 +12,7 @@ class UserError(ValueError):
 
 class SimulationError(RuntimeError):
     """The simulation left the grid or went non-finite; the message names the step and the particle."""
+
+
+class Interrupted(Exception):
+    """SIGINT or SIGTERM asked a long job (rendering) to stop; what it had finished is kept."""

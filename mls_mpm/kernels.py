@@ -1,7 +1,7 @@
 """Cubic B-spline weights and the 4x4 stencil (eq 1-2: N(x) = N1(x0/dx) N1(x1/dx))."""
 import taichi as ti
 
-STENCIL = 4
+from .config import STENCIL
 
 
 @ti.func

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .simulator import SimulationError
+from .errors import SimulationError
 
 ARMIJO = 1e-4  # sufficient decrease: L_new <= L - ARMIJO * step * |g| (normalised) or step * |g|^2 (raw)
 

@@ -12,14 +12,18 @@ from PIL import Image
 from .frames import FrameWriter, frame_paths, loss_plot, save_png, sheet, write_gif
 from . import runtime
 from .render import Renderer
-from .run import STATE_KEYS, config_of, load_result
+from .result import STATE_KEYS, config_of, load_result
 from .simulator import Simulator
 
 MODES = ("mass", "color", "particles")
 
 
-def render_run(out_dir, mode=None, size=None, every=None, arch=None, emit=print):
-    """Render the run in out_dir; mode/size/every default to the scene's [render] settings."""
+def render_run(out_dir, mode=None, size=None, every=None, arch=None, emit=print, should_stop=None):
+    """Render the run in out_dir; mode/size/every default to the scene's [render] settings.
+
+    should_stop: a callable polled between frames; when it turns true, rendering stops by raising
+    errors.Interrupted.
+    """
     out = Path(out_dir)
     meta, arrays = load_result(out)
     settings = meta["settings"]

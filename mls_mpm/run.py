@@ -14,14 +14,11 @@ import numpy as np
 
 from . import problem as problems, runtime
 from .checkpoint import CheckpointError, load_npz, save_json, save_npz, split_state
-from .config import SimConfig
 from .images import splat_grid
 from .optimize import METHODS
+from .result import STATE_KEYS
 from .simulator import Simulator
 from .errors import UserError
-
-STATE_KEYS = ("x", "v", "C", "F")
-
 
 class OutputError(UserError):
     """The output folder cannot be used."""
@@ -192,24 +189,3 @@ def _load_checkpoint(path, scene):
         opt_state = dict(meta["opt"])
         opt_state.update({k[4:]: v for k, v in arrays.items() if k.startswith("opt_")})
     return done, starts, opt_state, float(meta.get("elapsed", 0.0))
-
-
-def load_result(out_dir):
-    """(meta, arrays) of a finished run's result.npz, with a one-line error when missing or corrupt."""
-    meta, arrays = load_npz(Path(out_dir) / "result.npz", "result")
-    needed = ("controls", "colors", "init_x", "init_v", "init_C", "init_F", "target_grid", "final_x")
-    missing = [k for k in needed if k not in arrays] + [k for k in ("settings",) if k not in meta]
-    if missing:
-        raise CheckpointError(f"{Path(out_dir) / 'result.npz'}: lacks {', '.join(missing)}; not a result of "
-                              "`mls-mpm run`")
-    return meta, arrays
-
-
-def config_of(settings, arch=None):
-    """The SimConfig stored in a result's settings."""
-    sim = dict(settings["sim"])
-    sim["stride"] = settings["control"]["stride"]
-    sim["gravity"] = tuple(sim["gravity"])
-    if arch:
-        sim["arch"] = arch
-    return SimConfig(**sim)

@@ -17,7 +17,7 @@ try:
 except ModuleNotFoundError:  # Python 3.10
     import tomli as tomllib
 
-from .config import ARCHS, BOUNDARIES, DTYPES, SCHEDULES, ConfigError, SimConfig
+from .config import ARCHS, BOUNDARIES, DTYPES, SCHEDULES, ConfigError, SimConfig, min_n_grid
 from .images import ImageError, load_image
 from .errors import UserError
 
@@ -25,6 +25,8 @@ LOSS_KINDS = ("position", "mass", "log_mass", "color")
 METHODS = ("gd", "adam", "lbfgs", "positions")
 STEPS = ("normalized", "raw")
 RENDER_MODES = ("mass", "color", "particles")
+RENDER_SIZE_MIN = 16  # render.size and `render --size` in pixels
+RENDER_SIZE_MAX = 8192
 TARGET_DENSITY = ("match", "own")
 MIN_LOSS_GRID = 4  # a loss grid needs at least one full 4x4 stencil
 
@@ -381,7 +383,7 @@ def load_scene(path, overrides=()) -> Scene:
     values["stride"] = r.get("control", "stride")
     if values["stride"] > values["steps"]:
         r.fail("control", "stride", f"at most sim.steps = {values['steps']}")
-    least = 2 * (values["bound"] + 2) + 2  # the default region, (bound + 2) cells inside each edge, holds 2 cells
+    least = min_n_grid(values["bound"])
     if values["n_grid"] < least:
         r.fail("sim", "n_grid", f"an integer >= {least} (2 (bound + 2) + 2 for bound = {values['bound']})")
     try:

@@ -10,25 +10,11 @@ from . import losses, runtime
 from .config import ConfigError
 from .errors import SimulationError
 from .losses import ColorLoss, PositionLoss
-from .state import (FAULT_LEFT_GRID, FAULT_NON_FINITE, FAULT_NONE, State, available_bytes, estimate_bytes, read_step,
-                    upload_loss, write_step)
+from .memory import check_memory
+from .state import FAULT_LEFT_GRID, FAULT_NON_FINITE, FAULT_NONE, State, read_step, upload_loss, write_step
 from .step import clear_grid, run_serial, substep
 from .tape import tape_gradient
 from .transfer import check_step
-
-
-def _check_memory(cfg, n_particles):
-    """Refuse, before allocating, fields that would not fit (cfg.max_memory_gb, else 90% of what is free)."""
-    need = estimate_bytes(cfg, n_particles)
-    limit = cfg.max_memory_gb * 2 ** 30 if cfg.max_memory_gb else None
-    if limit is None:
-        free = available_bytes()
-        limit = 0.9 * free if free else None
-    if limit is not None and need > limit:
-        raise ConfigError(f"the preallocated fields need about {need / 2 ** 30:.2f} GiB for {cfg.steps} steps x "
-                          f"{n_particles} particles on a {cfg.n_grid}^2 grid ({cfg.dtype}), above the limit of "
-                          f"{limit / 2 ** 30:.3g} GiB; lower sim.steps, sim.n_grid or sim.particles_per_cell, use "
-                          "dtype f32, or raise sim.max_memory_gb")
 
 
 def _check_backend(cfg, loss):
@@ -55,7 +41,7 @@ class Simulator:
         if loss is not None:
             loss.check(self.n_particles)
             _check_backend(cfg, loss)
-        _check_memory(cfg, self.n_particles)
+        check_memory(cfg, self.n_particles, grids=[(g.res, g.target.shape[-1] if g.target.ndim == 3 else 1, g.alpha is not None) for g in (loss.grids if loss else ())])
         self.loss = loss
         self._serial = cfg.serial(self.n_particles)
         self.fields = State(cfg, self.n_particles, loss_grids=loss.grids if loss else (),

@@ -101,28 +101,6 @@ class State:
     def clear_faults(self):
         self.fault.from_numpy(np.full(2, FAULT_NONE, dtype=np.int64))
 
-def estimate_bytes(cfg, n_particles):
-    """Bytes of a State's per-step fields plus one step of adjoints: (x, v, C, F) per particle step,
-    (m, p, v) per grid step, the controls and their gradient."""
-    word = 8 if cfg.dtype == "f64" else 4
-    particle = (cfg.steps + 1) * n_particles * (2 + 2 + 4 + 4) + 2 * cfg.n_controls * n_particles * 4
-    grid = cfg.steps * cfg.n_grid ** 2 * (1 + 2 + 2)
-    adjoint = 2 * n_particles * 12 + cfg.n_grid ** 2 * 5
-    return (particle + grid + adjoint) * word
-
-
-def available_bytes():
-    """Memory the system can still give (MemAvailable), or None where unknown."""
-    try:
-        with open("/proc/meminfo") as fh:
-            for line in fh:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return None
-
-
 def upload_loss(s, loss):
     """Copy a loss's targets (and particle colors / target positions) into the state's fields."""
     if loss is None:

@@ -4,7 +4,7 @@ import pytest
 
 import mls_mpm
 from mls_mpm.config import ConfigError
-from mls_mpm.state import estimate_bytes
+from mls_mpm.memory import estimate_bytes
 
 
 def test_estimate_counts_every_stored_step():
