@@ -1,14 +1,19 @@
-"""Command line: mls-mpm run | check | render | bench. `main(argv) -> int`; Taichi starts only inside a command."""
+"""Command line: mls-mpm run | check | render | bench. `main(argv) -> int`; Taichi starts only inside a command.
+
+Exit codes: 0 done; 1 a simulation that went wrong, or `check` beyond its tolerances; 2 a bad command line or
+bad input (one line `mls-mpm: error: ...`); 130 and 143 stopped by SIGINT (Ctrl-C) and SIGTERM, after keeping
+what was finished. Nothing heavy is imported before `main` runs, so that Ctrl-C at any time gives one line.
+"""
 import argparse
 import signal
 import sys
-from pathlib import Path
 
 USAGE_ERRORS = 2
+SIGNAL_EXIT = {signal.SIGINT: 130, signal.SIGTERM: 143}  # 128 + the signal's number
 
 
 class StopFlag:
-    """Set by SIGINT/SIGTERM; the optimizer checkpoints and returns when it sees it."""
+    """Set by SIGINT/SIGTERM; the optimizer checkpoints and returns, rendering raises Interrupted, when it sees it."""
 
     def __init__(self):
         self.signal = None
@@ -24,18 +29,61 @@ class StopFlag:
             if self.signal is not None:  # a second Ctrl-C: stop now
                 raise KeyboardInterrupt
             self.signal = signum
-            print(f"\nmls-mpm: got signal {signum}; saving a checkpoint after the current step...", file=sys.stderr,
-                  flush=True)
+            print(f"\nmls-mpm: got signal {signum} ({signal.Signals(signum).name}); stopping after the current "
+                  "step (a second signal stops at once)...", file=sys.stderr, flush=True)
 
         for sig in previous:
             signal.signal(sig, handler)
         return lambda: [signal.signal(sig, h) for sig, h in previous.items()]
 
+    def exit_code(self):
+        """130 after SIGINT, 143 after SIGTERM."""
+        return SIGNAL_EXIT.get(self.signal, 130)
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse whose errors are one line, `mls-mpm: error: <command>: <what is wrong>; see ... --help`, exit 2
+    (argparse's own print the usage, then the error). --help is unchanged."""
+
+    def error(self, message):
+        command = self.prog.partition(" ")[2]
+        where = f"{command}: " if command else ""
+        self.exit(USAGE_ERRORS, f"mls-mpm: error: {where}{message}; see {self.prog} --help\n")
+
+
+def integer(lo, hi=None, unit=""):
+    """An option's type: an integer in [lo, hi] (hi None: no upper bound); argparse names the option."""
+    bounds = f">= {lo}" if hi is None else f"from {lo} to {hi}"
+
+    def parse(text):
+        try:
+            value = int(text)
+        except ValueError:
+            value = None
+        if value is None or value < lo or (hi is not None and value > hi):
+            raise argparse.ArgumentTypeError(f"expected an integer {bounds}{unit}, got {text!r}")
+        return value
+
+    return parse
+
+
+def positive(text):
+    """An option's type: a finite number > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = None
+    if value is None or not 0 < value < float("inf"):
+        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text!r}")
+    return value
+
 
 def build_parser():
+    from .scene import RENDER_MODES, RENDER_SIZE_MAX, RENDER_SIZE_MIN
+
     fmt = argparse.ArgumentDefaultsHelpFormatter
-    p = argparse.ArgumentParser(prog="mls-mpm", formatter_class=fmt,
-                                description="Differentiable MLS-MPM shape morphing (thesis: M. Xu, 2020).")
+    p = Parser(prog="mls-mpm", formatter_class=fmt,
+               description="Differentiable MLS-MPM shape morphing (thesis: M. Xu, 2020).")
     sub = p.add_subparsers(dest="command", required=True)
 
     run = sub.add_parser("run", formatter_class=fmt, help="optimize a scene and render its animation")
@@ -52,16 +100,17 @@ def build_parser():
                            help="compare the manual gradient with ti.ad.Tape and finite differences")
     check.add_argument("scene")
     check.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
-    check.add_argument("--steps", type=int, default=12, help="steps of the reduced scene")
-    check.add_argument("--particles", type=int, default=300, help="particles kept (an even subsample)")
-    check.add_argument("--tol-tape", type=float, default=1e-6, help="largest relative error against Tape")
-    check.add_argument("--tol-fd", type=float, default=1e-5, help="largest relative error against FD")
+    check.add_argument("--steps", type=integer(2), default=12, help="steps of the reduced scene (>= 2)")
+    check.add_argument("--particles", type=integer(1), default=300, help="particles kept (an even subsample)")
+    check.add_argument("--tol-tape", type=positive, default=1e-6, help="largest relative error against Tape (> 0)")
+    check.add_argument("--tol-fd", type=positive, default=1e-5, help="largest relative error against FD (> 0)")
 
     render = sub.add_parser("render", formatter_class=fmt, help="re-render a finished run from its result.npz")
     render.add_argument("dir", help="output folder of a finished run")
-    render.add_argument("--mode", choices=["mass", "color", "particles"], help="default: the scene's render.mode")
-    render.add_argument("--size", type=int, help="image size in pixels (default: render.size)")
-    render.add_argument("--every", type=int, help="a frame every K steps (default: render.every)")
+    render.add_argument("--mode", choices=RENDER_MODES, help="default: the scene's render.mode")
+    render.add_argument("--size", type=integer(RENDER_SIZE_MIN, RENDER_SIZE_MAX, " pixels"),
+                        help=f"image size in pixels, {RENDER_SIZE_MIN} to {RENDER_SIZE_MAX} (default: render.size)")
+    render.add_argument("--every", type=integer(1), help="a frame every K >= 1 steps (default: render.every)")
     render.add_argument("--arch", choices=["cpu", "gpu"], help="override sim.arch")
 
     bench = sub.add_parser("bench", formatter_class=fmt, help="benchmarks (figures for BENCHMARKS.md)")
@@ -72,7 +121,7 @@ def build_parser():
     bench.add_argument("scene", nargs="?", help="scene file (tradeoff only)")
     bench.add_argument("--out", help="tradeoff: output folder (default: renders/tradeoff_<scene name>/); "
                                      "scaling: folder of scaling.png (default: .); gradient: also write the "
-                                     "table to this file")
+                                     "table to this file (its folder must exist)")
     bench.add_argument("--quick", action="store_true",
                        help="gradient: 40 steps; tradeoff: fewer rows and iterations (under 10 minutes)")
     bench.add_argument("--arch", choices=["cpu", "gpu", "cuda", "vulkan"], default="cpu",
@@ -84,7 +133,19 @@ def build_parser():
 
 
 def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
+    """Run one command; its exit code. Ctrl-C at any point, imports included, is one line and 130."""
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:
+        print("mls-mpm: interrupted", file=sys.stderr)
+        return 130
+
+
+def _main(argv):
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as e:  # --help (0) or a bad command line (2, one line already printed)
+        return e.code if isinstance(e.code, int) else USAGE_ERRORS
     from .errors import SimulationError, UserError
 
     try:
@@ -95,9 +156,6 @@ def main(argv=None) -> int:
     except SimulationError as e:
         print(f"mls-mpm: simulation stopped: {e}", file=sys.stderr)
         return 1
-    except KeyboardInterrupt:
-        print("mls-mpm: interrupted", file=sys.stderr)
-        return 130
 
 
 def _scene(args):
@@ -109,7 +167,16 @@ def _scene(args):
     return load_scene(args.scene, overrides)
 
 
+def _interrupted(stop, e):
+    """The one line of a render stopped by a signal, and the exit code of that signal."""
+    print(f"mls-mpm: interrupted: {e}" if str(e) else "mls-mpm: interrupted while rendering", file=sys.stderr)
+    return stop.exit_code()
+
+
 def cmd_run(args):
+    from pathlib import Path
+
+    from .errors import Interrupted, SimulationError
     from .run import run_scene
 
     scene = _scene(args)
@@ -117,19 +184,19 @@ def cmd_run(args):
     stop = StopFlag()
     restore = stop.install()
     emit = (lambda *_: None) if args.quiet else (lambda msg: print(msg, flush=True))
-    from .simulator import SimulationError
-
     try:
         summary = run_scene(scene, out, resume=args.resume, emit=emit, should_stop=stop,
                             render=not args.no_render)
+    except Interrupted as e:
+        return _interrupted(stop, e)
     except SimulationError as e:
         ckpt = out / "checkpoint.npz"
         saved = f"; the last good checkpoint is {ckpt}" if ckpt.is_file() else ""
         raise SimulationError(f"{e}{saved}") from None
     finally:
         restore()
-    if summary.get("interrupted"):
-        return 130 if stop.signal == signal.SIGINT else 143
+    if summary.get("interrupted") or summary.get("render_interrupted"):
+        return stop.exit_code()
     if args.quiet:
         print(f"{scene.name}: loss {summary['loss_initial']:.6e} -> {summary['loss_final']:.6e}, "
               f"iou {summary['iou']:.3f}")
@@ -143,19 +210,32 @@ def cmd_check(args):
 
 
 def cmd_render(args):
+    from .errors import Interrupted
     from .render_run import render_run
 
-    render_run(args.dir, mode=args.mode, size=args.size, every=args.every, arch=args.arch)
+    stop = StopFlag()
+    restore = stop.install()
+    try:
+        render_run(args.dir, mode=args.mode, size=args.size, every=args.every, arch=args.arch, should_stop=stop)
+    except Interrupted as e:
+        return _interrupted(stop, e)
+    finally:
+        restore()
     return 0
 
 
 def cmd_bench(args):
-    from .scene import SceneError
+    import math
+    from pathlib import Path
 
+    from .bench.output import BenchError
+
+    if args.scene and args.what != "tradeoff":
+        raise BenchError(f"bench {args.what}: SCENE {args.scene}: a scene applies to bench tradeoff only; drop it")
     if args.arch != "cpu" and args.what != "gradient":
-        raise SceneError(f"bench {args.what}: --arch applies to bench gradient only; drop it")
-    if args.max_seconds is not None and (args.what != "tradeoff" or not args.max_seconds > 0):
-        raise SceneError(f"bench {args.what}: --max-seconds {args.max_seconds:g}: expected seconds > 0, with bench "
+        raise BenchError(f"bench {args.what}: --arch applies to bench gradient only; drop it")
+    if args.max_seconds is not None and (args.what != "tradeoff" or not 0 < args.max_seconds < math.inf):
+        raise BenchError(f"bench {args.what}: --max-seconds {args.max_seconds:g}: expected seconds > 0, with bench "
                          "tradeoff only")
     if args.what == "gradient":
         from .bench import bench_gradient
@@ -167,10 +247,11 @@ def cmd_bench(args):
 
         bench_scaling(quick=args.quick, plot_path=Path(args.out or ".") / "scaling.png")
         return 0
-    from .tradeoff import bench_tradeoff
+    from .bench import bench_tradeoff
 
     if not args.scene:
-        raise SceneError("bench tradeoff: expected a SCENE file, e.g. mls-mpm bench tradeoff scenes/circle_to_torus.toml")
+        raise BenchError("bench tradeoff: expected a SCENE file, e.g. mls-mpm bench tradeoff "
+                         "scenes/circle_to_torus.toml")
     bench_tradeoff(args.scene, out=args.out, quick=args.quick, max_seconds=args.max_seconds)
     return 0
 

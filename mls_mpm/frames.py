@@ -123,11 +123,13 @@ def sheet(images, labels, gap=8, label_height=20, background=255):
 
 
 def loss_plot(losses, path, size=(640, 400), title="loss"):
-    """A loss-vs-iteration PNG with a log-scale y axis, axes, ticks and labels, drawn with Pillow.
+    """A loss-vs-iteration PNG with a log-scale y axis, axes, ticks and labels, drawn with Pillow (plot.py).
 
     Non-finite and non-positive losses have no place on a log axis and are left out of the curve.
     Returns the path written.
     """
+    from . import plot
+
     losses = np.asarray(losses, dtype=np.float64).ravel()
     it = np.arange(len(losses))
     keep = np.isfinite(losses) & (losses > 0)
@@ -138,7 +140,7 @@ def loss_plot(losses, path, size=(640, 400), title="loss"):
         raise ValueError(f"size = {size}: too small for the plot")
     canvas = Image.new("RGB", (W, H), (255, 255, 255))
     draw = ImageDraw.Draw(canvas)
-    font = ImageFont.load_default()
+    font = plot.font()
 
     if keep.any():
         lo, hi = np.log10(losses[keep].min()), np.log10(losses[keep].max())
@@ -148,65 +150,27 @@ def loss_plot(losses, path, size=(640, 400), title="loss"):
         lo, hi = lo - 0.5, hi + 0.5
     y0, y1 = math.floor(lo), math.ceil(hi)  # whole decades bound the axis
     n_max = max(len(losses) - 1, 1)
-
-    def px(i):
-        return left + pw * i / n_max
-
-    def py(log_v):
-        return top + ph * (y1 - log_v) / (y1 - y0)
+    axes = plot.Axes(left, top, pw, ph, (0, n_max), (y0, y1))
 
     # y ticks: every decade, with 2x and 5x minor labels when the range spans at most two decades
-    for e in range(y0, y1 + 1):
-        for mult in ((1, 2, 5) if y1 - y0 <= 2 else (1,)):
-            v = math.log10(mult) + e
-            if v > y1 + 1e-12:
-                continue
-            y = py(v)
-            draw.line([(left - 5, y), (left, y)], fill=(0, 0, 0))
-            draw.line([(left + 1, y), (left + pw, y)], fill=(225, 225, 225) if mult == 1 else (242, 242, 242))
-            _text(draw, (left - 8, y), f"{mult}e{e}" if mult != 1 else f"1e{e}", font, anchor="rm")
-    # x ticks at a 1-2-5 step giving at most about 8 ticks
-    step = _nice_step(n_max / 8)
-    k = 0
-    while k <= n_max:
-        x = px(k)
-        draw.line([(x, top + ph), (x, top + ph + 5)], fill=(0, 0, 0))
-        _text(draw, (x, top + ph + 8), str(k), font, anchor="mt")
-        k += step
-    draw.rectangle([left, top, left + pw, top + ph], outline=(0, 0, 0))
+    for v, label in plot.decade_ticks(y0, y1, (1, 2, 5) if y1 - y0 <= 2 else (1,)):
+        axes.y_tick(draw, v, label, font, grid=(225, 225, 225) if v % 1 == 0 else (242, 242, 242))
+    for k in plot.linear_ticks(n_max):  # at most about 8
+        axes.x_tick(draw, k, str(k), font)
+    axes.frame(draw)
 
-    points = [(px(i), py(math.log10(v))) for i, v, ok in zip(it, losses, keep) if ok]
+    points = [axes.pt(i, math.log10(v)) for i, v, ok in zip(it, losses, keep) if ok]
     if len(points) > 1:
         draw.line(points, fill=(200, 30, 30), width=2)
     for p in points if len(points) <= 60 else points[-1:]:
         draw.ellipse([p[0] - 2, p[1] - 2, p[0] + 2, p[1] + 2], fill=(200, 30, 30))
 
-    _text(draw, (left + pw / 2, H - 6), "iteration", font, anchor="md")
-    _text(draw, (left + pw / 2, top / 2), f"{title} (log scale)", font, anchor="mm")
-    _text(draw, (8, top + ph / 2), "loss", font, anchor="lm")
+    plot.text(draw, (left + pw / 2, H - 6), "iteration", font, anchor="md")
+    plot.text(draw, (left + pw / 2, top / 2), f"{title} (log scale)", font, anchor="mm")
+    plot.text(draw, (8, top + ph / 2), "loss", font, anchor="lm")
     path = Path(path)
     save_png(np.asarray(canvas), path)
     return path
-
-
-def _nice_step(raw):
-    """The smallest integer step of the form 1, 2, 5 x 10^k that is >= raw."""
-    raw = max(raw, 1.0)
-    e = 10 ** math.floor(math.log10(raw))
-    for m in (1, 2, 5, 10):
-        if m * e >= raw:
-            return int(m * e)
-    return int(10 * e)
-
-
-def _text(draw, xy, text, font, anchor):
-    """Text anchored like Pillow's anchors ("rm": right-middle, ...); bitmap default fonts lack anchor support."""
-    left, top, right, bottom = draw.textbbox((0, 0), text, font=font)
-    w, h = right - left, bottom - top
-    x, y = xy
-    x -= {"l": 0, "m": w / 2, "r": w}[anchor[0]]
-    y -= {"t": 0, "m": h / 2, "d": h, "b": h}[anchor[1]]
-    draw.text((x - left, y - top), text, fill=(0, 0, 0), font=font)
 
 
 def _as_u8(image):

@@ -1,6 +1,7 @@
-"""Benchmark plumbing (mls_mpm/tradeoff.py, mls_mpm/bench.py, benchmarks/report.py) without timing anything: the
-tradeoff rows asked for by issue 5, the Pareto front, a row stopped at its time budget, the guide computed from a
-sweep, and a GPU benchmark refused where there is no GPU. The figures themselves are in BENCHMARKS.md.
+"""Benchmark plumbing (the mls_mpm/bench subpackage, benchmarks/report.py) without timing anything: the tradeoff
+rows (every setting that trades time for accuracy), the Pareto front, a row stopped at its time budget, the guide
+computed from a sweep, options and output paths refused before anything is measured, and a GPU benchmark refused
+where there is no GPU. The figures themselves are in BENCHMARKS.md.
 """
 import csv
 import importlib.util
@@ -9,11 +10,11 @@ from pathlib import Path
 import pytest
 
 from mls_mpm import runtime
-from mls_mpm.bench import bench_gradient
+from mls_mpm.bench import bench_gradient, gradient
+from mls_mpm.bench.tradeoff import FIELDS, _retry, measure, pareto, rows_for
 from mls_mpm.cli import build_parser, main
 from mls_mpm.runtime import ArchError
 from mls_mpm.scene import load_scene
-from mls_mpm.tradeoff import FIELDS, _retry, measure, pareto, rows_for
 
 ROOT = Path(__file__).resolve().parents[1]
 TORUS = ROOT / "scenes" / "circle_to_torus.toml"
@@ -27,7 +28,7 @@ def report_module():
     return module
 
 
-def test_full_sweep_has_every_setting_of_issue_5():
+def test_full_sweep_has_every_setting():
     """Grid 32/64/128, particles per cell 1/4/9, stride 1/5/10/25, iterations 1/2/4/8 and converged, the three
     optimizers, multi-resolution loss grids, penalty, the other dtype: each row changes one setting only."""
     scene = load_scene(TORUS)  # 32^2, 16 per cell, stride 10, gd, 10 iterations, f64
@@ -101,6 +102,9 @@ def test_bench_options_parse():
     (["bench", "gradient", "--max-seconds", "60"], "bench gradient: --max-seconds 60: expected seconds > 0, with "
                                                    "bench tradeoff only"),
     (["bench", "tradeoff", "s.toml", "--max-seconds", "0"], "bench tradeoff: --max-seconds 0: expected seconds > 0"),
+    (["bench", "tradeoff", "s.toml", "--max-seconds", "inf"], "bench tradeoff: --max-seconds inf: expected seconds > 0"),
+    (["bench", "gradient", "s.toml"], "bench gradient: SCENE s.toml: a scene applies to bench tradeoff only; drop it"),
+    (["bench", "scaling", "s.toml", "--quick"], "bench scaling: SCENE s.toml: a scene applies to bench tradeoff only"),
 ])
 def test_bench_options_that_do_not_apply_are_refused(argv, says, capsys):
     """One line, exit 2, before anything is measured (no scene is read: s.toml does not exist)."""
@@ -116,3 +120,55 @@ def test_gpu_gradient_benchmark_refused_without_a_gpu(tmp_path, monkeypatch):
     with pytest.raises(ArchError, match=r"^sim.arch = gpu: no cuda or vulkan device .* use sim.arch = cpu$"):
         bench_gradient(quick=True, arch="gpu", out=tmp_path / "gpu.md", emit=lambda *_: None)
     assert not (tmp_path / "gpu.md").exists()
+
+
+@pytest.fixture
+def nothing_measured(monkeypatch):
+    """Any benchmark child or backend probe fails the test: a refusal must come before them."""
+    def child(*args, **kwargs):
+        raise AssertionError("measured before the output path was checked")
+
+    import mls_mpm.bench.child as child_module
+    import mls_mpm.bench.scaling as scaling
+
+    for module, name in [(gradient, "backend_here"), (gradient, "run_child"), (child_module, "run_child"),
+                         (scaling, "run_child")]:
+        monkeypatch.setattr(module, name, child)
+
+
+@pytest.mark.parametrize("argv, says", [
+    (["bench", "gradient", "--out", "/proc/no_such_folder/t.md"],
+     "--out /proc/no_such_folder/t.md: no such folder /proc/no_such_folder; create it first"),
+    (["bench", "gradient", "--out", "/proc/t.md"], "--out /proc/t.md: folder /proc is not writable"),  # root too
+    (["bench", "gradient", "--out", "."], "--out .: is a folder; expected a file name"),
+    (["bench", "scaling", "--out", "/proc/figures"], "--out /proc/figures: cannot create the folder"),
+    (["bench", "tradeoff", str(TINY), "--out", "/proc/sweep"], "--out /proc/sweep: cannot create the folder"),
+])
+def test_bench_output_refused_before_measuring(argv, says, capsys, nothing_measured):
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"mls-mpm: error: {says}") and len(err.splitlines()) == 1, err
+
+
+def test_bench_output_under_a_file_refused(tmp_path, capsys, nothing_measured):
+    (tmp_path / "file").write_text("")
+    assert main(["bench", "gradient", "--out", str(tmp_path / "file" / "t.md")]) == 2
+    assert f"no such folder {tmp_path / 'file'}" in capsys.readouterr().err
+    assert main(["bench", "scaling", "--out", str(tmp_path / "file")]) == 2
+    assert "cannot create the folder (File exists)" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]  # no probe left behind
+
+
+def test_bench_gradient_writes_out_after_the_check(tmp_path, monkeypatch):
+    """A writable --out is accepted and the table lands there (children faked: nothing is timed)."""
+    monkeypatch.setattr(gradient, "backend_here", lambda arch: "cpu")
+    fake = {"manual": {"forward_ms": 1.0, "backward_ms": 1.2, "peak_mib": 100.0, "backend": "cpu"},
+            "tape": {"tape_ms": 4.4, "peak_mib": 200.0, "backend": "cpu"}}
+    monkeypatch.setattr(gradient, "run_child",
+                        lambda case, path, steps, tiny=False: dict(fake[path], **({"peak_mib": 40.0} if tiny else {})))
+    out = tmp_path / "g.md"
+    bench_gradient(quick=True, out=out, emit=lambda *_: None)
+    table = out.read_text().splitlines()
+    assert table[0].startswith("Taichi CPU, 2 threads.") and len(table) == 6
+    assert table[4].endswith("| 1.000 | 8.19 M | 1.200 | 1.20 | 4.400 | 2.00 | 60 | 160 | 0.38 |")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["g.md"]

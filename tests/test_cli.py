@@ -94,22 +94,53 @@ def test_parse_check_render_bench():
     assert (b.command, b.what, b.quick) == ("bench", "gradient", True)
 
 
-@pytest.mark.parametrize("argv", [
-    [],  # no command
-    ["walk", "s.toml"],
-    ["run"],  # no scene
-    ["run", "s.toml", "--arch", "tpu"],
-    ["run", "s.toml", "--sett", "sim.steps=5"],
-    ["render", "d", "--mode", "wireframe"],
-    ["render", "d", "--size", "big"],
-    ["check", "s.toml", "--steps", "1.5"],
-    ["bench", "everything"],
+@pytest.mark.parametrize("argv, says", [
+    ([], "the following arguments are required: command"),
+    (["walk", "s.toml"], "argument command: invalid choice: 'walk'"),
+    (["run"], "run: the following arguments are required: scene"),
+    (["run", "s.toml", "--arch", "tpu"], "run: argument --arch: invalid choice: 'tpu'"),
+    (["run", "s.toml", "--sett", "sim.steps=5"], "unrecognized arguments: --sett"),
+    (["render", "d", "--mode", "wireframe"], "render: argument --mode: invalid choice: 'wireframe' (choose from "
+                                             "'mass', 'color', 'particles')"),
+    (["render", "d", "--size", "big"], "render: argument --size: expected an integer from 16 to 8192 pixels, "
+                                       "got 'big'"),
+    (["render", "d", "--size", "0"], "render: argument --size: expected an integer from 16 to 8192 pixels, got '0'"),
+    (["render", "d", "--size", "-5"], "render: argument --size: expected an integer from 16 to 8192"),
+    (["render", "d", "--size", "8"], "render: argument --size: expected an integer from 16 to 8192"),
+    (["render", "d", "--size", "100000"], "render: argument --size: expected an integer from 16 to 8192"),
+    (["render", "d", "--every", "0"], "render: argument --every: expected an integer >= 1, got '0'"),
+    (["render", "d", "--every", "-1"], "render: argument --every: expected an integer >= 1, got '-1'"),
+    (["check", "s.toml", "--steps", "1.5"], "check: argument --steps: expected an integer >= 2, got '1.5'"),
+    (["check", "s.toml", "--steps", "1"], "check: argument --steps: expected an integer >= 2, got '1'"),
+    (["check", "s.toml", "--particles", "0"], "check: argument --particles: expected an integer >= 1, got '0'"),
+    (["check", "s.toml", "--tol-tape", "nan"], "check: argument --tol-tape: expected a finite number > 0, got 'nan'"),
+    (["check", "s.toml", "--tol-tape", "0"], "check: argument --tol-tape: expected a finite number > 0, got '0'"),
+    (["check", "s.toml", "--tol-fd", "-1"], "check: argument --tol-fd: expected a finite number > 0, got '-1'"),
+    (["check", "s.toml", "--tol-fd", "inf"], "check: argument --tol-fd: expected a finite number > 0, got 'inf'"),
+    (["bench", "everything"], "bench: argument what: invalid choice: 'everything'"),
 ])
-def test_parser_refuses(argv, capsys):
+def test_parser_refuses_with_one_line(argv, says, capsys):
+    """Every bad command line: exit 2 and one line naming the option and what it expects (no usage block)."""
     with pytest.raises(SystemExit) as e:
         build_parser().parse_args(argv)
     assert e.value.code == 2
-    assert "error:" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert err.splitlines() == [err.rstrip("\n")], err
+    assert err.startswith(f"mls-mpm: error: {says}"), err
+    assert err.rstrip().endswith("--help")
+    assert main(argv) == 2  # main returns the code; nothing is simulated (s.toml and d do not exist)
+    assert capsys.readouterr().err == err
+
+
+def test_parser_accepts_the_limits():
+    from mls_mpm.scene import RENDER_MODES, RENDER_SIZE_MAX, RENDER_SIZE_MIN
+
+    p = build_parser()
+    for size in (RENDER_SIZE_MIN, RENDER_SIZE_MAX):
+        assert p.parse_args(["render", "d", "--size", str(size), "--every", "1"]).size == size
+    assert [p.parse_args(["render", "d", "--mode", m]).mode for m in RENDER_MODES] == list(RENDER_MODES)
+    c = p.parse_args(["check", "s.toml", "--steps", "2", "--particles", "1", "--tol-tape", "1e-300", "--tol-fd", "5"])
+    assert (c.steps, c.particles, c.tol_tape, c.tol_fd) == (2, 1, 1e-300, 5.0)
 
 
 def test_help_shows_defaults(capsys):
@@ -240,9 +271,9 @@ def test_check_passes_and_prints_relative_errors():
 
 
 def test_check_fails_beyond_tolerance():
-    """Zero tolerances: the same (non-zero) finite-difference error now fails the check, with exit code 1."""
+    """Tolerances of 1e-300: the same (non-zero) finite-difference error now fails the check, with exit code 1."""
     fresh_taichi()
-    code, stdout, _ = call("check", TINY, "--tol-tape", "0", "--tol-fd", "0")
+    code, stdout, _ = call("check", TINY, "--tol-tape", "1e-300", "--tol-fd", "1e-300")
     assert code == 1
     assert "FAILED" in stdout
     assert float(CHECK_LINE.findall(stdout)[1][0]) > 0.0
@@ -360,6 +391,100 @@ def test_refusal_in_a_real_process(tmp_path):
 
 
 # ---------------------------------------------------------------------------------------------------------
+# Signals and imports: `import mls_mpm` and `import mls_mpm.cli` load neither numpy nor Taichi, so Ctrl-C
+# during start-up lands inside main, which says one line; `render` stops on SIGINT/SIGTERM like `run`.
+
+# Sends this process SIGINT the moment `module` is first imported, then runs the CLI as its console script does.
+INTERRUPT_AT_IMPORT = """
+import os, signal, sys
+
+
+class Interrupt:
+    def find_spec(self, name, path=None, target=None):
+        if name == sys.argv[1]:
+            os.kill(os.getpid(), signal.SIGINT)
+        return None
+
+
+sys.meta_path.insert(0, Interrupt())
+from mls_mpm.cli import main
+sys.exit(main(sys.argv[2:]))
+"""
+
+
+@pytest.mark.parametrize("module", ["numpy", "taichi"])
+def test_ctrl_c_during_import_is_one_line(module):
+    proc = subprocess.run([sys.executable, "-c", INTERRUPT_AT_IMPORT, module, "check", str(TINY)], cwd=ROOT,
+                          capture_output=True, text=True, timeout=120)
+    assert "Traceback" not in proc.stderr, proc.stderr
+    assert proc.returncode == 130, proc.stderr
+    assert proc.stderr.splitlines() == ["mls-mpm: interrupted"]
+
+
+def test_package_import_is_lazy():
+    """The package's names and submodules are there on first use; importing it and the CLI loads no numpy/Taichi."""
+    code = ("import sys, mls_mpm, mls_mpm.cli; heavy = {'numpy', 'taichi'} & set(sys.modules); "
+            "print(sorted(heavy), mls_mpm.SimConfig.__module__, mls_mpm.Simulator.__module__, "
+            "mls_mpm.MassLoss.__module__, mls_mpm.runtime.__name__, mls_mpm.SimulationError.__name__)")
+    proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.split()[-6:] == ["[]", "mls_mpm.config", "mls_mpm.simulator", "mls_mpm.losses",
+                                        "mls_mpm.runtime", "SimulationError"]
+    import mls_mpm
+
+    with pytest.raises(AttributeError, match="has no attribute 'no_such_name'"):
+        mls_mpm.no_such_name
+
+
+SIGNALS = [(signal.SIGINT, 130), (signal.SIGTERM, 143)]
+
+
+@pytest.mark.parametrize("sig, code", SIGNALS)
+def test_render_stops_on_a_signal(monkeypatch, sig, code):
+    """`render` installs the same StopFlag as `run` and passes it as should_stop; Interrupted is one line, 130/143."""
+    import mls_mpm.render_run
+    from mls_mpm.errors import Interrupted
+
+    seen = []
+
+    def render_run(out_dir, mode=None, size=None, every=None, arch=None, emit=print, should_stop=None):
+        seen.append(should_stop())
+        signal.raise_signal(sig)  # as from the terminal: the handler only sets the flag
+        seen.append(should_stop())
+        raise Interrupted("rendering stopped after frame 3; the earlier frames are kept")
+
+    monkeypatch.setattr(mls_mpm.render_run, "render_run", render_run)
+    got, stdout, stderr = call("render", "some/run")
+    assert (got, seen) == (code, [False, True]), stderr
+    lines = [ln for ln in stderr.splitlines() if ln]
+    assert lines == [f"mls-mpm: got signal {int(sig)} ({sig.name}); stopping after the current step (a second "
+                     "signal stops at once)...",
+                     "mls-mpm: interrupted: rendering stopped after frame 3; the earlier frames are kept"], stderr
+    assert stdout == ""
+
+
+@pytest.mark.parametrize("sig, code", SIGNALS)
+@pytest.mark.parametrize("how", ["render_interrupted", "interrupted", "raises"])
+def test_run_maps_an_interrupted_run_to_its_signal(monkeypatch, tmp_path, sig, code, how):
+    """Stopped while optimizing (summary "interrupted") or while rendering (summary "render_interrupted", or
+    Interrupted raised): exit 130 after SIGINT, 143 after SIGTERM, no traceback."""
+    import mls_mpm.run
+    from mls_mpm.errors import Interrupted
+
+    def run_scene(scene, out, resume=False, emit=print, should_stop=None, render=True):
+        signal.raise_signal(sig)
+        assert should_stop()
+        if how == "raises":
+            raise Interrupted("rendering stopped; the result is kept, render it with mls-mpm render")
+        return {"scene": scene.name, how: True}
+
+    monkeypatch.setattr(mls_mpm.run, "run_scene", run_scene)
+    got, _, stderr = call("run", TINY, "--out", tmp_path / "out")
+    assert got == code, stderr
+    assert "Traceback" not in stderr
+
+
+# ---------------------------------------------------------------------------------------------------------
 # A real SIGINT
 
 K_BOUNDARY_BUG = ("bug: gd interrupted after the last control step of a temporal iteration checkpoints k = K; "
@@ -396,6 +521,7 @@ def test_signal_checkpoints_and_resume_finishes_the_same(tmp_path, sig, code):
     text = log.read_text()
     assert got_code == code, text
     assert f"got signal {int(sig)}" in text and "continue with --resume" in text and "Traceback" not in text
+    assert "stopping after the current step" in text and "saving a checkpoint" not in text  # true while rendering too
     assert (out / "checkpoint.npz").is_file() and not (out / "result.npz").exists()
     meta, _ = load_npz(out / "checkpoint.npz", "checkpoint")
     done = meta["opt"]["iteration"]

@@ -16,9 +16,11 @@ import sys
 import time
 from pathlib import Path
 
-from PIL import Image, ImageDraw, ImageFont
+from PIL import Image, ImageDraw
 
-from .checkpoint import atomic_write
+from .. import plot
+from ..checkpoint import atomic_write
+from .output import writable_folder
 
 FIELDS = ["row", "group", "overrides", "wall_seconds", "loss_ratio", "iou", "mass_outside_target", "iterations",
           "converged", "status"]
@@ -96,11 +98,10 @@ def pareto(rows):
 
 def bench_tradeoff(scene_path, out=None, quick=False, emit=print, max_seconds=None):
     """The sweep of `rows_for`, resumable; max_seconds: the wall-time budget of one row (None: no limit)."""
-    from .scene import load_scene
+    from ..scene import load_scene
 
     scene = load_scene(scene_path)
-    out = Path(out or Path("renders") / f"tradeoff_{scene.name}{'_quick' if quick else ''}")
-    out.mkdir(parents=True, exist_ok=True)
+    out = writable_folder(out or Path("renders") / f"tradeoff_{scene.name}{'_quick' if quick else ''}")
     table = out / "tradeoff.csv"
     done = {}
     if table.is_file():
@@ -167,38 +168,30 @@ def scatter(rows, front, path, title, size=(720, 480)):
     pw, ph = W - left - right, H - top - bottom
     img = Image.new("RGB", size, "white")
     d = ImageDraw.Draw(img)
-    font = ImageFont.load_default()
-    d.rectangle([left, top, left + pw, top + ph], outline="black")
-    d.text((left + pw / 2, 8), title, fill="black", font=font, anchor="mt")
-    d.text((left + pw / 2, H - 8), "wall time (s, log)", fill="black", font=font, anchor="mb")
-    d.text((6, top - 14), "loss_final / loss_initial (log)", fill="black", font=font)
-    if ok:
+    font = plot.font()
+    plot.text(d, (left + pw / 2, 8), title, font, anchor="mt")
+    plot.text(d, (left + pw / 2, H - 8), "wall time (s, log)", font, anchor="mb")
+    plot.text(d, (6, top - 14), "loss_final / loss_initial (log)", font)
+    if not ok:
+        d.rectangle([left, top, left + pw, top + ph], outline="black")
+    else:
         xs = [math.log10(float(r["wall_seconds"])) for r in ok]
         ys = [math.log10(float(r["loss_ratio"])) for r in ok]
         x0, x1 = math.floor(min(xs) * 4) / 4, math.ceil(max(xs) * 4) / 4 + 0.25
         y0, y1 = math.floor(min(ys)), math.ceil(max(ys)) + (1 if math.ceil(max(ys)) == math.floor(min(ys)) else 0)
-
-        def pt(x, y):
-            return left + pw * (x - x0) / (x1 - x0), top + ph * (y1 - y) / (y1 - y0)
-
-        for e in range(y0, y1 + 1):
-            _, y = pt(x0, e)
-            d.line([(left, y), (left + pw, y)], fill=(230, 230, 230))
-            d.text((left - 6, y), f"1e{e}", fill="black", font=font, anchor="rm")
-        for e in range(math.floor(x0), math.ceil(x1) + 1):
-            for m in (1, 2, 5):
-                v = e + math.log10(m)
-                if x0 <= v <= x1:
-                    x, _ = pt(v, y0)
-                    d.line([(x, top + ph), (x, top + ph + 4)], fill="black")
-                    d.text((x, top + ph + 6), f"{m * 10 ** e:g}", fill="black", font=font, anchor="mt")
-        fr = [pt(math.log10(float(r["wall_seconds"])), math.log10(float(r["loss_ratio"]))) for r in front]
+        axes = plot.Axes(left, top, pw, ph, (x0, x1), (y0, y1))
+        for v, label in plot.decade_ticks(y0, y1):
+            axes.y_tick(d, v, label, font, tick=0, gap=6, grid=(230, 230, 230))
+        for v, label in plot.log_125_ticks(x0, x1):
+            axes.x_tick(d, v, label, font, tick=4, gap=2)
+        axes.frame(d)
+        fr = [axes.pt(math.log10(float(r["wall_seconds"])), math.log10(float(r["loss_ratio"]))) for r in front]
         if len(fr) > 1:
             d.line(fr, fill=(200, 30, 30), width=2)
         names = {r["row"] for r in front}
         for r, x, y in zip(ok, xs, ys):
-            px, py = pt(x, y)
+            px, py = axes.pt(x, y)
             color = (200, 30, 30) if r["row"] in names else (40, 40, 160)
             d.ellipse([px - 3, py - 3, px + 3, py + 3], fill=color)
-            d.text((px + 5, py - 5), r["row"], fill=color, font=font)
+            plot.text(d, (px + 5, py), r["row"], font, anchor="lm", fill=color)
     atomic_write(path, lambda fh: img.save(fh, format="PNG"))

@@ -1,0 +1,107 @@
+"""One measurement in a child process of its own (peak memory is per process): the benchmark cases, the
+scene each runs, and the probe of a backend.
+
+`run_child(case, path, steps)` starts `measure` in a fresh interpreter and reads back its JSON line: the
+forward and manual backward ms/step ("manual") or ti.ad.Tape's forward+backward ms/step ("tape"), the
+process's peak RSS and the backend it ran on. Compile time is excluded by a warm-up pass.
+"""
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+# The reference sizes: f32 at 64^2 with ~8k particles, and the thesis program's f64 32^2 / 1,245.
+CASES = {
+    "large": dict(dtype="f32", n_grid=64, particles=8192, steps=200),
+    "small": dict(dtype="f64", n_grid=32, particles=1245, steps=200),
+}
+THREADS = 2
+
+
+def scene_of(case, steps):
+    """A disk of `particles` particles centred in the domain, a mass loss toward a shifted disk."""
+    from ..config import SimConfig
+
+    arch = case.get("arch", "cpu")
+    cfg = SimConfig(n_grid=case["n_grid"], steps=steps, dt=1e-4, E=1e3, nu=0.2, density=1.0, gamma=0.5,
+                    stride=min(10, steps), dtype=case["dtype"], threads=THREADS if arch == "cpu" else 0,
+                    schedule=case.get("schedule", "auto"), arch=arch)
+    rng = np.random.default_rng(0)
+    r = 0.25 * np.sqrt(rng.uniform(0, 1, case["particles"]))
+    a = rng.uniform(0, 2 * np.pi, case["particles"])
+    x0 = 0.5 + np.stack([r * np.cos(a), r * np.sin(a)], axis=1)
+    from ..images import splat_grid
+    from ..losses import MassLoss
+
+    target = splat_grid(x0 + [0.05, 0.02], cfg.m_p, cfg.n_grid)
+    controls = 0.01 * rng.standard_normal((cfg.n_controls, len(x0), 2, 2))
+    return cfg, x0, MassLoss([target]), controls
+
+
+def _peak_mib():
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def measure(case, path, steps):
+    """Run in a child process: one path ("manual" or "tape"), print a JSON line of timings and peak memory."""
+    cfg, x0, loss, controls = scene_of(case, steps)
+    if path == "manual":
+        from ..simulator import Simulator
+
+        sim = Simulator(cfg, x0, loss=loss)
+        sim.forward(controls)
+        sim.backward()  # warm-up: compiles every kernel
+        t0 = time.perf_counter()
+        sim.forward(controls)
+        t1 = time.perf_counter()
+        sim.backward()
+        t2 = time.perf_counter()
+        out = {"forward_ms": (t1 - t0) / steps * 1e3, "backward_ms": (t2 - t1) / steps * 1e3}
+    else:
+        from ..tape import tape_gradient
+
+        N = len(x0)
+        init = {"x": x0, "v": np.zeros((N, 2)), "C": np.zeros((N, 2, 2)), "F": np.tile(np.eye(2), (N, 1, 1))}
+        _, _, state = tape_gradient(cfg, init, loss, controls)
+        t0 = time.perf_counter()
+        tape_gradient(cfg, init, loss, controls, state=state)
+        t1 = time.perf_counter()
+        out = {"tape_ms": (t1 - t0) / steps * 1e3}
+    from ..runtime import running_arch
+
+    out["peak_mib"] = _peak_mib()
+    out["backend"] = running_arch()
+    print(json.dumps(out))
+
+
+def run_child(case_name, path, steps, tiny=False):
+    """`measure` of CASES[case_name] (or of a case dict) in a fresh interpreter; its result dict.
+
+    tiny=True: the same kernels at a negligible size, what the process holds besides the fields."""
+    case = dict(CASES[case_name]) if isinstance(case_name, str) else dict(case_name)
+    if tiny:
+        case.update(particles=64)
+        steps = 2
+    cmd = [sys.executable, "-c", f"from mls_mpm.bench.child import measure; measure({case!r}, {path!r}, {steps})"]
+    res = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "TI_LOG_LEVEL": "error"})
+    lines = [ln for ln in res.stdout.splitlines() if ln.startswith("{")]
+    if res.returncode or not lines:
+        raise RuntimeError(f"benchmark child failed ({case_name}, {path}):\n{res.stderr[-2000:]}")
+    return json.loads(lines[-1])
+
+
+def backend_here(arch):
+    """The backend `arch` starts on this machine (runtime.ensure, in a child process, so that the caller's
+    Taichi stays as it is), or ArchError with runtime's one-line reason."""
+    from ..runtime import ArchError
+
+    cmd = [sys.executable, "-c", "from mls_mpm import SimConfig, runtime; "
+           f"runtime.ensure(SimConfig(arch={arch!r})); print(runtime.running_arch())"]
+    res = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "TI_LOG_LEVEL": "error"})
+    if res.returncode:
+        raise ArchError((res.stderr.strip().splitlines() or ["?"])[-1].split(": ", 1)[-1])
+    return res.stdout.split()[-1]

@@ -1,0 +1,78 @@
+"""`mls-mpm bench gradient`: forward, manual backward and ti.ad.Tape speed and peak memory.
+
+Each measurement runs in its own process (child.py), and every ratio is taken between figures measured in
+the same invocation. Compile time is excluded by a warm-up pass, and the compiler's memory by running each
+child twice (the first fills Taichi's offline cache).
+"""
+import subprocess
+
+from .child import CASES, THREADS, backend_here, run_child
+from .output import writable_file
+
+
+def bench_gradient(quick=False, emit=print, arch="cpu", out=None):
+    """Print the gradient benchmark as a markdown table (and return its rows); out: also write it there.
+
+    A file `out` that could not be written is refused before anything is measured."""
+    if out:
+        writable_file(out)
+    backend = backend_here(arch)
+    lines = []
+
+    def say(text):
+        lines.append(text)
+        emit(text)
+
+    def warm(*args, **kwargs):
+        """A child run twice, the second measured: the first fills Taichi's offline cache, so that neither
+        peak RSS holds the compiler's memory (the sizes are compile-time constants: the tiny runs compile
+        kernels of their own)."""
+        run_child(*args, **kwargs)
+        return run_child(*args, **kwargs)
+
+    rows = []
+    for name, case in CASES.items():
+        case = dict(case, arch=arch)
+        steps = 40 if quick else case["steps"]
+        man = warm(case, "manual", steps)
+        tape = warm(case, "tape", steps)
+        if backend == "cpu":  # on a GPU the fields live in device memory: host RSS says nothing of them
+            man["peak_mib"] -= warm(case, "manual", steps, tiny=True)["peak_mib"]
+            tape["peak_mib"] -= warm(case, "tape", steps, tiny=True)["peak_mib"]
+        rows.append((name, case, steps, man, tape))
+    where = f"Taichi CPU, {THREADS} threads" if backend == "cpu" else f"Taichi {backend} ({_device_name(backend)})"
+    memory = ("peak RSS of the path's process minus that of the same path at 64 particles and 2 steps (Python, "
+              "Taichi and the compiled kernels), i.e. the memory the data needs" if backend == "cpu" else
+              "not measured (the fields live in device memory; the estimate of the preallocated fields is in "
+              "the scaling table)")
+    say(f"{where}. Memory: {memory}.\n")
+    say("| case | fwd ms/step | particle-steps/s | manual bwd ms/step | bwd / fwd | Tape fwd+bwd ms/step | "
+        "Tape / manual (fwd+bwd) | manual MiB | Tape MiB | manual / Tape memory |")
+    say("|---|---|---|---|---|---|---|---|---|---|")
+    for name, case, steps, man, tape in rows:
+        if {man["backend"], tape["backend"]} != {backend}:
+            raise RuntimeError(f"benchmark children ran on {man['backend']} / {tape['backend']}, not {backend}")
+        fwd, bwd, tp = man["forward_ms"], man["backward_ms"], tape["tape_ms"]
+        m_man, m_tape = man["peak_mib"], tape["peak_mib"]
+        mem = f"{m_man:.0f} | {m_tape:.0f} | {m_man / m_tape:.2f}" if backend == "cpu" else "- | - | -"
+        label = f"{case['dtype']}, {case['n_grid']}^2 grid, {case['particles']} particles, {steps} steps"
+        say(f"| {label} | {fwd:.3f} | {case['particles'] / fwd * 1e3 / 1e6:.2f} M | {bwd:.3f} | {bwd / fwd:.2f} | "
+            f"{tp:.3f} | {tp / (fwd + bwd):.2f} | {mem} |")
+    if out:
+        from ..checkpoint import atomic_write
+
+        atomic_write(out, lambda fh: fh.write(("\n".join(lines) + "\n").encode()))
+    return rows
+
+
+def _device_name(backend):
+    """The GPU's name from nvidia-smi (CUDA), or the backend's name where that is not to be had."""
+    if backend == "cuda":
+        try:
+            res = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"], capture_output=True,
+                                 text=True, timeout=30)
+            if res.returncode == 0 and res.stdout.strip():
+                return res.stdout.strip().splitlines()[0]
+        except (OSError, subprocess.TimeoutExpired):
+            pass
+    return "device name not known" if backend == "cuda" else "a Vulkan device"
