@@ -7,6 +7,6 @@ setup(
     python_requires=">=3.10",
     packages=["mls_mpm", "adjoint"],
     install_requires=["taichi>=1.7,<1.8", "numpy", "pillow", "scipy", "tomli; python_version<'3.11'"],
-    extras_require={"test": ["pytest"]},
+    extras_require={"test": ["pytest", "pot"]},
     entry_points={"console_scripts": ["mls-mpm = mls_mpm.cli:main"]},
 )
