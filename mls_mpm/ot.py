@@ -1,0 +1,166 @@
+"""Entropic optimal transport between two mass grids: the debiased Sinkhorn divergence and its gradient.
+
+The mass loss of eq 11 compares node masses one node at a time, so material farther than the cubic kernel's
+reach from where the target has mass gets no gradient (thesis 8.1, 7.2). Optimal transport compares where the
+mass is as a whole; thesis 5.4 and 9.2 name it as the remedy for this transport problem.
+
+Both grids are measures on the nodes x_i = i h (h = 1 / res per axis) of a regular grid, of any dimension,
+with the cost C(x, y) = |x - y|^2 / 2. The entropic transport cost with blur sigma (eps = sigma^2)
+
+    OT(a, b) = min_P <P, C> + eps KL(P | a x b) [+ rho KL(P 1 | a) + rho KL(P^T 1 | b), unbalanced]
+
+is computed in its dual form by the log-domain Sinkhorn iteration. Its Gibbs kernel exp(-C / eps) is
+separable on a grid (Solomon et al. 2015, "Convolutional Wasserstein distances"), so one iteration is one 1D
+log-sum-exp blur per axis: res^(dim + 1) work, not the (res^dim)^2 of the dense kernel. The blur starts at
+the grid's diameter and shrinks geometrically to sigma (eps-scaling), then iterates at sigma until the
+potentials stop changing.
+
+The debiased divergence S(a, b) = OT(a, b) - OT(a, a) / 2 - OT(b, b) / 2 [+ eps (|a| - |b|)^2 / 2] is zero
+for a = b, positive otherwise, and tends to the exact transport cost as sigma -> 0 (Feydy et al. 2019;
+Sejourne et al. 2019 for the unbalanced form). With the potentials at convergence (envelope theorem):
+
+    balanced (reach None), on a / |a| and b / |b|:  S = <a', f_ba - f_aa> + <b', g_ab - g_bb>,
+        dS/da'_i = f_ba,i - f_aa,i, and dS/da_i = (F_i - <a', F>) / |a| with F = f_ba - f_aa, a' = a / |a|;
+    unbalanced (rho = reach^2, masses kept):
+        S = (rho + eps/2) (<a, exp(-f_aa/rho) - exp(-f_ba/rho)> + <b, exp(-g_bb/rho) - exp(-g_ab/rho)>),
+        dS/da_i = (rho + eps) (exp(-f_aa,i/rho) - exp(-f_ba,i/rho)).
+
+Bias: OT_0 <= OT(a, b) <= OT_0 + eps min(H(a), H(b)) for probability vectors (the plan's KL to a x b is at most
+the smaller entropy H), and 0 <= OT(a, a) <= eps H(a), so the balanced divergence lies within
+eps (H(a) + H(b)) / 2 of the exact transport cost OT_0 (tests/test_ot.py checks this against an exact solver).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class SinkhornResult:
+    """The divergence, its gradient with respect to the first grid's node masses, and how it was reached."""
+
+    value: float  # S(a, b), in (domain units)^2 (per unit mass for the balanced divergence)
+    grad: np.ndarray  # dS/da, the shape of a
+    iterations: int  # Sinkhorn iterations, eps-scaling included
+    change: float  # largest change of a potential in the last iteration, relative to eps
+
+
+def _cost_1d(res: int, eps: float) -> np.ndarray:
+    """C_ij / eps along one axis: ((i - j) h)^2 / (2 eps)."""
+    d = (np.arange(res)[:, None] - np.arange(res)[None, :]) / res
+    return 0.5 * d * d / eps
+
+
+def softmin(h: np.ndarray, eps: float) -> np.ndarray:
+    """-eps log sum_j exp(h_j - C_ij / eps) for every node i, one 1D log-sum-exp per axis (the separable kernel).
+
+    h holds log-weights plus potential / eps; entries of -inf (empty nodes) drop out. A node whose sum is empty
+    (h all -inf) gets +inf.
+    """
+    out = h
+    for axis in range(h.ndim):
+        cost = _cost_1d(h.shape[axis], eps)
+        moved = np.moveaxis(out, axis, -1)  # (..., j)
+        blurred = _logsumexp(moved[..., None, :] - cost)  # (..., i)
+        out = np.moveaxis(blurred, -1, axis)
+    return -eps * out
+
+
+def _logsumexp(z: np.ndarray) -> np.ndarray:
+    """log sum_j exp(z_ij) over the last axis, shifted by the row's largest entry (rows of -inf give -inf)."""
+    top = z.max(axis=-1, keepdims=True)
+    top = np.where(np.isfinite(top), top, 0.0)
+    with np.errstate(divide="ignore"):
+        return np.log(np.exp(z - top).sum(axis=-1)) + top[..., 0]
+
+
+def _log(a: np.ndarray) -> np.ndarray:
+    with np.errstate(divide="ignore"):
+        return np.log(a)
+
+
+def _epsilons(res: int, dim: int, blur: float, scaling: float) -> list:
+    """eps-scaling: eps from the grid's squared diameter down to blur^2 by factors scaling^2."""
+    diameter = math.sqrt(dim) * (res - 1) / res
+    eps, out = diameter ** 2, []
+    while eps > blur ** 2:
+        out.append(eps)
+        eps *= scaling ** 2
+    out.append(blur ** 2)
+    return out
+
+
+def sinkhorn_divergence(a, b, blur: float, reach: float | None = None, scaling: float = 0.7, tol: float = 1e-9,
+                        max_iterations: int = 10000) -> SinkhornResult:
+    """S(a, b) and dS/da for two non-negative mass grids of the same shape (res,) * dim.
+
+    blur: sigma = sqrt(eps) in domain units (the grid spans [0, 1) per axis); reach: None for the balanced
+    divergence of a / |a| and b / |b|, else the unbalanced one with rho = reach^2, on the masses themselves;
+    tol: stop when no potential changes by more than tol * eps in an iteration at the final blur.
+    """
+    a = np.asarray(a, np.float64)
+    b = np.asarray(b, np.float64)
+    if a.shape != b.shape or a.ndim < 1 or len(set(a.shape)) != 1:
+        raise ValueError(f"a, b: expected two grids of one shape (res,) * dim, got {a.shape} and {b.shape}")
+    if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b)) and a.min() >= 0 and b.min() >= 0):
+        raise ValueError("a, b: expected finite, non-negative masses")
+    mass_a, mass_b = float(a.sum()), float(b.sum())
+    if mass_a <= 0 or mass_b <= 0:
+        raise ValueError(f"a, b: expected some mass in both grids, got total masses {mass_a:g} and {mass_b:g}")
+    if not blur > 0 or (reach is not None and not reach > 0):
+        raise ValueError(f"blur = {blur!r}, reach = {reach!r}: expected numbers > 0 (reach: or None)")
+    balanced = reach is None
+    if balanced:
+        a, b = a / mass_a, b / mass_b
+    rho = math.inf if balanced else reach ** 2
+    log_a, log_b = _log(a), _log(b)
+    res, dim = a.shape[0], a.ndim
+    epsilons = _epsilons(res, dim, blur, scaling)
+
+    def damp(eps):  # the proximal step of the KL marginal penalty: 1 / (1 + eps / rho), 1 when balanced
+        return 1.0 if balanced else 1.0 / (1.0 + eps / rho)
+
+    eps = epsilons[0]
+    lam = damp(eps)
+    f_ba, g_ab = lam * softmin(log_b, eps), lam * softmin(log_a, eps)
+    f_aa, g_bb = g_ab.copy(), f_ba.copy()
+    iterations, change = 0, math.inf
+
+    def step(eps, f_ba, g_ab, f_aa, g_bb):
+        lam = damp(eps)
+        return (lam * softmin(log_b + g_ab / eps, eps), lam * softmin(log_a + f_ba / eps, eps),
+                lam * softmin(log_a + f_aa / eps, eps), lam * softmin(log_b + g_bb / eps, eps))
+
+    schedule = list(epsilons)
+    while True:
+        if schedule:
+            eps = schedule.pop(0)
+        elif change <= tol or iterations >= max_iterations:
+            break
+        new = step(eps, f_ba, g_ab, f_aa, g_bb)
+        old = (f_ba, g_ab, f_aa, g_bb)
+        f_ba, g_ab, f_aa, g_bb = (0.5 * (o + n) for o, n in zip(old, new))  # symmetric averaged updates
+        iterations += 1
+        if not schedule:
+            change = max(_largest_change(o, n, w) for o, n, w in zip(old, (f_ba, g_ab, f_aa, g_bb),
+                                                                      (a, b, a, b))) / eps
+    # final extrapolation at the last blur (not averaged), as in Feydy et al.
+    f_ba, g_ab, f_aa, g_bb = step(eps, f_ba, g_ab, f_aa, g_bb)
+    if balanced:
+        value = float(np.sum(a * (f_ba - f_aa)) + np.sum(b * (g_ab - g_bb)))
+        F = f_ba - f_aa
+        grad = (F - np.sum(a * F)) / mass_a  # through the normalisation a' = a / |a|
+    else:
+        e_aa, e_ba = np.exp(-f_aa / rho), np.exp(-f_ba / rho)
+        e_bb, e_ab = np.exp(-g_bb / rho), np.exp(-g_ab / rho)
+        value = float((rho + 0.5 * eps) * (np.sum(a * (e_aa - e_ba)) + np.sum(b * (e_bb - e_ab))))
+        grad = (rho + eps) * (e_aa - e_ba)
+    return SinkhornResult(value, grad, iterations, float(change))
+
+
+def _largest_change(old, new, weight):
+    """Largest |new - old| over nodes with mass (potentials on empty nodes do not enter the value)."""
+    mask = weight > 0
+    return float(np.max(np.abs(new[mask] - old[mask]), initial=0.0))
