@@ -8,8 +8,9 @@ from scipy import ndimage
 import mls_mpm
 import mls_mpm.runtime
 from mls_mpm.frames import FrameWriter, frame_paths, loss_plot, sheet, write_gif
-from mls_mpm.render import (BODY_OUTLINE_COLOR, PATH, TARGET_COLOR, Renderer, Thresholds, contour, draw_outline,
-                            path_color, path_position)
+from mls_mpm.colormap import PATH, Thresholds, path_color, path_position
+from mls_mpm.contour import contour, draw_outline
+from mls_mpm.render import BODY_OUTLINE_COLOR, TARGET_COLOR, Renderer
 
 N_GRID = 32
 DX = 1.0 / N_GRID
