@@ -18,6 +18,7 @@ import taichi as ti
 import mls_mpm
 from mls_mpm import runtime
 from mls_mpm.frames import FRAME_NAME, FrameWriter
+from mls_mpm.problem import rest_node_mass
 from mls_mpm.render import Renderer
 
 
@@ -60,14 +61,15 @@ def main(argv=None):
     rng = np.random.default_rng(0)
     F = np.eye(2) + 0.2 * rng.standard_normal((len(x), 2, 2))
     colors = np.where(x[:, :1] < 0.5, [[1.0, 0.0, 0.0]], [[0.0, 0.0, 1.0]])
+    rest = rest_node_mass(cfg, cfg.n_grid)
     target = np.zeros((cfg.n_grid, cfg.n_grid))
-    target[16:48, 16:48] = cfg.density * cfg.dx ** 2
+    target[16:48, 16:48] = rest
     print(f"{len(x)} particles, {cfg.n_grid}^2 grid, {args.size}^2 pixels, arch {args.arch}, {args.dtype}")
 
     frames = {}
     for mode, extra in (("mass", {}), ("color", {"colors": colors}), ("particles", {}),
                         ("particles", {"F": F}), ("mass", {"target_outline": target})):
-        r = Renderer(cfg.n_grid, len(x), args.size, cfg.density * cfg.dx ** 2, mode,
+        r = Renderer(cfg.n_grid, len(x), args.size, rest, mode,
                      body_outline="target_outline" in extra)
         ms, cpu = best_ms(lambda: r.render(x, cfg.m_p, **extra), args.repeats)
         what = mode + "".join(f" +{k}" for k in extra if k != "colors")

@@ -1,9 +1,15 @@
-"""Writing rendered frames to disk: numbered PNGs, an animated GIF, comparison sheets and a loss plot (Pillow only)."""
+"""Writing rendered frames to disk: numbered PNGs, an animated GIF, comparison sheets and a loss plot (Pillow only).
+
+A render writes its frames into frames.new/ beside the frames/ of the last one and swaps the folders only when
+every frame is written (`swap_in`), so a render that fails or is interrupted leaves the old frames as they were
+(`discard_new`). `recover` cleans what a killed render left before the next one starts.
+"""
 from __future__ import annotations
 
 import math
 import os
 import re
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +20,10 @@ FRAME_RE = re.compile(r"^frame_(\d{5,})\.png$")
 # zlib level of every PNG written here. Level 1 encodes a 512^2 frame about 2-3x faster than Pillow's default
 # (6) for files about 1.5x larger (benchmarks/render_speed.py times FrameWriter.write); PNG stays lossless.
 PNG_COMPRESS_LEVEL = 1
+FRAMES_DIR = "frames"
+NEW_DIR = "frames.new"  # the frames of a render in progress
+OLD_DIR = "frames.old"  # the frames a finished render replaces, between the two renames of `swap_in`
+TEMP_RE = re.compile(r"^\.(?P<name>.+)\.(?P<pid>\d+)\.tmp$")  # `temp_path`: .NAME.PID.tmp beside NAME
 
 
 def frame_paths(frames_dir):
@@ -25,11 +35,70 @@ def frame_paths(frames_dir):
     return [p for _, p in sorted(found)]
 
 
+def temp_path(path):
+    """The temporary file beside path that this process writes before renaming it to path."""
+    return path.with_name(f".{path.name}.{os.getpid()}.tmp")
+
+
+def _alive(pid):
+    """Whether a process with this id runs (another user's counts too)."""
+    if pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except (ProcessLookupError, OverflowError):
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def remove_stale_temps(folder, names):
+    """Delete the `temp_path` files in folder for target names matching the regex names whose writing process
+    has ended (killed before its rename); any other file is left alone."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return
+    for p in folder.iterdir():
+        m = TEMP_RE.match(p.name)
+        if m and names.match(m.group("name")) and p.is_file() and not _alive(int(m.group("pid"))):
+            p.unlink(missing_ok=True)
+
+
+def recover(out_dir):
+    """Undo what a killed render left in out_dir: frames.old/ goes back to frames/ when the swap was cut
+    between its renames (frames/ missing), else it is deleted; frames.new/ and stale frame temporaries go."""
+    out = Path(out_dir)
+    frames, new, old = out / FRAMES_DIR, out / NEW_DIR, out / OLD_DIR
+    if old.is_dir() and not frames.exists():
+        os.replace(old, frames)
+    shutil.rmtree(old, ignore_errors=True)
+    shutil.rmtree(new, ignore_errors=True)
+    remove_stale_temps(frames, FRAME_RE)
+
+
+def swap_in(out_dir):
+    """Make out_dir/frames.new/ the frames/ folder: the old frames renamed away, the new renamed in, the old
+    deleted. Returns the frames folder."""
+    out = Path(out_dir)
+    frames, new, old = out / FRAMES_DIR, out / NEW_DIR, out / OLD_DIR
+    if frames.exists():
+        os.replace(frames, old)
+    os.replace(new, frames)
+    shutil.rmtree(old, ignore_errors=True)
+    return frames
+
+
+def discard_new(out_dir):
+    """Delete the frames of a render that did not finish (out_dir/frames.new/)."""
+    shutil.rmtree(Path(out_dir) / NEW_DIR, ignore_errors=True)
+
+
 def save_png(image, path):
     """Write a uint8 (H, W, 3) array to path atomically: a temporary file in the same folder, then os.replace."""
     path = Path(path)
     image = _as_u8(image)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp = temp_path(path)
     try:
         Image.fromarray(image, "RGB").save(tmp, format="PNG", compress_level=PNG_COMPRESS_LEVEL)
         os.replace(tmp, path)
@@ -44,10 +113,11 @@ class FrameWriter:
 
     clear=True removes frame files left by an earlier run first; clear=False continues after the last one
     (to extend an animation, thesis 7.4). Each frame is written atomically; nothing is kept in memory.
+    folder: the frame folder's name in out_dir (NEW_DIR for a render that `swap_in` will finish).
     """
 
-    def __init__(self, out_dir, clear=True):
-        self.frames_dir = Path(out_dir) / "frames"
+    def __init__(self, out_dir, clear=True, folder=FRAMES_DIR):
+        self.frames_dir = Path(out_dir) / folder
         self.frames_dir.mkdir(parents=True, exist_ok=True)
         existing = frame_paths(self.frames_dir)
         if clear:
@@ -87,7 +157,7 @@ def write_gif(frames_dir, path, max_size=256, fps=20):
     it = frames()
     first = next(it)
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp = temp_path(path)
     try:
         first.save(tmp, format="GIF", save_all=True, append_images=it, duration=round(1000 / fps), loop=0,
                    optimize=False, disposal=1)

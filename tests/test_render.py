@@ -8,8 +8,9 @@ from scipy import ndimage
 import mls_mpm
 import mls_mpm.runtime
 from mls_mpm.frames import FrameWriter, frame_paths, loss_plot, sheet, write_gif
-from mls_mpm.render import (BODY_OUTLINE_COLOR, PATH, TARGET_COLOR, Renderer, Thresholds, contour, draw_outline,
-                            path_color, path_position)
+from mls_mpm.colormap import PATH, Thresholds, path_color, path_position
+from mls_mpm.contour import contour, draw_outline
+from mls_mpm.render import BODY_OUTLINE_COLOR, TARGET_COLOR, Renderer, estimate_bytes
 
 N_GRID = 32
 DX = 1.0 / N_GRID
@@ -382,6 +383,31 @@ def test_render_target_matches_rendered_particles():
     img = r.render(x, m_p)
     grid = r.grid_m.to_numpy()
     np.testing.assert_array_equal(r.render_target(grid, outline=False), img)
+
+
+def allocated_bytes(value):
+    """Bytes held by the Taichi fields and numpy arrays in value (an object's attributes, a tuple, ...)."""
+    if isinstance(value, ti.Field):
+        return value.to_numpy().nbytes
+    if isinstance(value, np.ndarray):
+        return value.nbytes
+    if isinstance(value, (tuple, list)):
+        return sum(allocated_bytes(v) for v in value)
+    return 0
+
+
+@pytest.mark.parametrize("mode", ["mass", "color", "particles"])
+def test_memory_estimate_is_what_a_renderer_allocates(mode):
+    """render_run refuses a renderer that would not fit by estimate_bytes, before building it: the estimate
+    must be the bytes of the fields and buffers the Renderer then holds, plus the frame it returns."""
+    x, m_p = block(0.25, 0.75)
+    target = np.zeros((48, 48))
+    target[12:36, 12:36] = (1.0 / 48) ** 2
+    r = Renderer(N_GRID, len(x), 80, REST, mode, body_outline=True)
+    frame = r.render(x, m_p, colors=np.ones((len(x), 3)), target_outline=target)
+    held = sum(allocated_bytes(v) for v in vars(r).values())
+    assert estimate_bytes(N_GRID, len(x), 80, mode, 8, target_res=48) == held + frame.nbytes
+    assert estimate_bytes(N_GRID, len(x), 80, mode, 8) < held  # without the target grid's fields
 
 
 def test_frames_are_numbered_without_gaps(tmp_path):
