@@ -19,8 +19,9 @@ OPAQUE = 0.5  # a pixel whose alpha is at most this is background
 JITTER = 0.5  # lattice jitter, as a fraction of the sub-cell spacing
 MAX_PIXELS = 50_000_000  # width x height of the largest image accepted (50 megapixels, 1.6 GB as float RGBA)
 RGBA_BYTES = 4 * 8  # bytes per pixel of the float64 RGBA array load_image returns
+DECODE_BYTES = RGBA_BYTES + 4 + 8  # bytes per pixel while loading: the RGBA array, Pillow's 8-bit copy, temporaries
 STENCIL_NODES = 16  # nodes of a particle's 4 x 4 B-spline stencil
-ROUND_OFF = 1e-9  # cells: particle_bound's margin for a box edge on a cell edge
+ROUND_OFF = 1e-9  # cells: particle_bound takes a box edge this close to a cell edge as on it
 CHUNK = 1 << 16  # cells (sample_particles) or particles (splat_grid) processed at a time, to bound temporaries
 
 
@@ -59,6 +60,12 @@ def _opened(path):
         raise ImageError(f"{path}: not an image Pillow can read ({reason})") from None
     finally:
         Image.MAX_IMAGE_PIXELS = saved
+
+
+def image_size(path) -> tuple:
+    """(width, height) from an image's header, without decoding its pixels."""
+    with _opened(path) as img:
+        return img.size
 
 
 def check_image(path) -> tuple:
@@ -129,8 +136,9 @@ def cell_range(shape, n_grid, region) -> tuple:
 
 def particle_bound(mask, n_grid, particles_per_cell, region=None, bound=3) -> int:
     """An upper bound of the particles sample_particles keeps on the material mask (H, W), without sampling:
-    particles_per_cell times the cells under the material pixels' bounding box (widened by ROUND_OFF cells),
-    or under each material pixel (at most ceil(s / dx) + 1 cells per axis), whichever is fewer."""
+    particles_per_cell times the cells whose interior meets the material pixels' bounding box, or meets each
+    material pixel (at most ceil(s / dx) + 1 cells per axis), whichever is fewer. A box edge within ROUND_OFF
+    of a cell edge is taken as on it (only a particle rounded onto that edge could then be missed)."""
     mask = np.asarray(mask, bool)
     region = default_region(n_grid, bound) if region is None else tuple(float(r) for r in region)
     rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
@@ -140,10 +148,10 @@ def particle_bound(mask, n_grid, particles_per_cell, region=None, bound=3) -> in
     ox, oy, s = fit(mask.shape, region)
     dx = 1.0 / n_grid
     i0, i1, j0, j1 = cell_range(mask.shape, n_grid, region)
-    i_lo = max(i0, math.floor((ox + cols[0] * s) / dx - ROUND_OFF))
-    i_hi = min(i1, math.ceil((ox + (cols[-1] + 1) * s) / dx + ROUND_OFF))
-    j_lo = max(j0, math.floor((oy + (H - 1 - rows[-1]) * s) / dx - ROUND_OFF))
-    j_hi = min(j1, math.ceil((oy + (H - rows[0]) * s) / dx + ROUND_OFF))
+    i_lo = max(i0, math.floor((ox + cols[0] * s) / dx + ROUND_OFF))
+    i_hi = min(i1, math.ceil((ox + (cols[-1] + 1) * s) / dx - ROUND_OFF))
+    j_lo = max(j0, math.floor((oy + (H - 1 - rows[-1]) * s) / dx + ROUND_OFF))
+    j_hi = min(j1, math.ceil((oy + (H - rows[0]) * s) / dx - ROUND_OFF))
     per_pixel = (math.ceil(s / dx) + 1) ** 2
     return particles_per_cell * min((i_hi - i_lo) * (j_hi - j_lo), int(np.count_nonzero(mask)) * per_pixel)
 
