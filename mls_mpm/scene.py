@@ -139,7 +139,7 @@ def load_scene(path, overrides=()) -> Scene:
         r.fail("control", "stride", f"at most sim.steps = {values['steps']}")
     least = min_n_grid(values["bound"])
     if values["n_grid"] < least:
-        r.fail("sim", "n_grid", f"an integer >= {least} (2 (bound + 2) + 2 for bound = {values['bound']})")
+        r.fail("sim", "n_grid", f"an integer >= {least} for sim.bound = {values['bound']} (config.min_n_grid)")
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", CFLWarning)  # refused below, in one line

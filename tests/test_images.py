@@ -297,3 +297,19 @@ def test_particle_bound_counts_only_the_material_box():
     n = len(sample_particles(rgba(mask), 64, 4)[0])
     assert n <= particle_bound(mask, 64, 4) <= 2 * n  # the image's own cells would give 95 n
     assert particle_bound(np.zeros((8, 8), bool), 64, 4) == 0
+
+
+# ---- scenes/make_images.py ---------------------------------------------------------------------------------
+
+def test_make_images_reproduces_the_shipped_images(tmp_path, monkeypatch):
+    """The generator writes every shipped image byte for byte, each readable by all, and no temp file."""
+    root = Path(__file__).resolve().parents[1]
+    monkeypatch.syspath_prepend(str(root / "scenes"))
+    import make_images
+
+    make_images.main(tmp_path)
+    written = sorted(p.name for p in tmp_path.iterdir())
+    assert written == sorted(p.name for p in (root / "scenes" / "images").glob("*.png"))
+    for name in written:
+        assert (tmp_path / name).read_bytes() == (root / "scenes" / "images" / name).read_bytes(), name
+        assert (tmp_path / name).stat().st_mode & 0o777 == 0o644, name
