@@ -18,7 +18,7 @@ from .images import (DECODE_BYTES, ImageError, default_region, image_size, load_
 from .losses import ColorLoss, MassLoss, PositionLoss
 from .memory import check_memory
 from .scene import SceneError
-from .scene_keys import _fmt
+from .scene_keys import toml_text
 
 EMPTY = 1e-6  # a target node is empty where its mass is at most EMPTY times the grid's largest
 WORD = 8  # bytes of a float64 entry
@@ -160,7 +160,7 @@ def _check_memory(scene, images, particles):
     if key == "loss.grids":
         sizes = ", ".join(f"{res}^2" for res in ls.grids)
         default = " (sim.n_grid when loss.grids is not set)" if ls.grids == (cfg.n_grid,) else ""
-        raise SceneError(f"{scene.path}: loss.grids = {_fmt(list(ls.grids))}{default}: expected loss grids whose "
+        raise SceneError(f"{scene.path}: loss.grids = {toml_text(list(ls.grids))}{default}: expected loss grids whose "
                          f"target arrays fit in memory ({need} for {sizes} nodes), {below}")
     if key == "sim.n_grid":
         raise SceneError(f"{scene.path}: sim.n_grid = {cfg.n_grid}: expected a grid whose particles fit in memory "
@@ -208,7 +208,7 @@ def _alpha(scene, target):
     res = target.shape[0]
     ls = scene.loss
     if not isinstance(ls.penalty, (int, float)):
-        rgba = load_image(ls.penalty)
+        rgba = _load(scene, "loss.penalty", ls.penalty)
         gray = rgba[..., :3].mean(axis=-1) * rgba[..., 3] + (1.0 - rgba[..., 3])  # transparent reads as white
         nodes = np.stack(np.meshgrid(np.arange(res), np.arange(res), indexing="ij"), -1).reshape(-1, 2) / res
         region = scene.region or default_region(scene.sim.n_grid, scene.sim.bound)

@@ -16,8 +16,8 @@ except ModuleNotFoundError:  # Python 3.10
     import tomli as tomllib
 
 from .config import CFLWarning, ConfigError, SimConfig, min_n_grid
-from .scene_keys import (NAME_RULE, RENDER_MODES, RENDER_SIZE_MAX, RENDER_SIZE_MIN, SPEC, SceneError, _fmt,
-                         _Reader, parse_override, valid_name)
+from .scene_keys import (NAME_RULE, RENDER_MODES, RENDER_SIZE_MAX, RENDER_SIZE_MIN, SPEC, SceneError, toml_text,
+                         Reader, parse_override, valid_name)
 
 __all__ = ["RENDER_MODES", "RENDER_SIZE_MAX", "RENDER_SIZE_MIN", "SPEC", "LossSettings", "OptimizeSettings",
            "RenderSettings", "Scene", "SceneError", "load_scene", "parse_override"]
@@ -129,7 +129,7 @@ def load_scene(path, overrides=()) -> Scene:
             raise SceneError(f"{path}: --set {text!r}: {section} is not a [section] table")
         table[key] = value
         from_set.add((section, key))
-    r = _Reader(path, raw, from_set)
+    r = Reader(path, raw, from_set)
     r.check_names()
 
     # [sim] and [control]
@@ -179,7 +179,7 @@ def load_scene(path, overrides=()) -> Scene:
     grids = r.get("loss", "grids") or (sim.n_grid,)
     weights = r.get("loss", "weights") or (1.0,) * len(grids)
     if len(weights) != len(grids):
-        r.fail("loss", "weights", f"one weight per loss grid ({len(grids)}: loss.grids = {_fmt(list(grids))})")
+        r.fail("loss", "weights", f"one weight per loss grid ({len(grids)}: loss.grids = {toml_text(list(grids))})")
     penalty = r.get("loss", "penalty")
     if kind not in ("mass", "log_mass") and penalty != 0.0:
         r.fail("loss", "penalty", f"0 with loss.kind = \"{kind}\" (penalty grids weigh the mass losses)")
@@ -199,7 +199,7 @@ def load_scene(path, overrides=()) -> Scene:
 
     name = r.get("scene", "name")
     if name is None and not valid_name(path.stem):
-        raise SceneError(f"{path}: scene.name: missing, and the file name {_fmt(path.stem)} is not a valid name; "
+        raise SceneError(f"{path}: scene.name: missing, and the file name {toml_text(path.stem)} is not a valid name; "
                          f"expected {NAME_RULE}: set scene.name or rename the file")
     return Scene(name=name or path.stem, path=path, initial=initial, target=target, region=region,
                  seed=r.get("scene", "seed"), target_density=r.get("scene", "target_density"), sim=sim, loss=loss,

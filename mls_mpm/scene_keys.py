@@ -1,7 +1,7 @@
 """How each key of a scene file is read and checked, and how refusals are worded.
 
 `SPEC` lists every section and key with its default and its reader; a reader returns the parsed value, or None
-when the value has the wrong type or range, and comes with the words of what is expected. `_Reader` applies
+when the value has the wrong type or range, and comes with the words of what is expected. `Reader` applies
 them to one file's raw TOML tables and raises SceneError with one line:
 `<file>: <section.key> = <value>: expected <what>`.
 """
@@ -201,16 +201,16 @@ SPEC = {
 }
 
 
-def _fmt(v) -> str:
+def toml_text(v) -> str:
     """A value as TOML would write it, on one line (dates and times in RFC 3339, as TOML writes them)."""
     if isinstance(v, bool):
         return "true" if v else "false"
     if isinstance(v, str):
         return json.dumps(v)
     if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_fmt(x) for x in v) + "]"
+        return "[" + ", ".join(toml_text(x) for x in v) + "]"
     if isinstance(v, dict):
-        return "{" + ", ".join(f"{k} = {_fmt(x)}" for k, x in v.items()) + "}"
+        return "{" + ", ".join(f"{k} = {toml_text(x)}" for k, x in v.items()) + "}"
     if isinstance(v, (datetime.date, datetime.time)):  # datetime.datetime is a date
         return v.isoformat()
     return repr(v)
@@ -238,7 +238,7 @@ def _suggest_key(section, key) -> str:
     return "expected one of " + ", ".join(SPEC[section])
 
 
-class _Reader:
+class Reader:
     """Reads one scene's raw TOML tables, remembering which keys came from --set, and words the errors."""
 
     def __init__(self, path, raw, from_set):
@@ -249,7 +249,7 @@ class _Reader:
     def where(self, section, key):
         v = self.raw.get(section, {}).get(key)
         origin = " (from --set)" if (section, key) in self.from_set else ""
-        return f"{self.path}: {section}.{key} = {_fmt(v)}{origin}"
+        return f"{self.path}: {section}.{key} = {toml_text(v)}{origin}"
 
     def fail(self, section, key, expected):
         raise SceneError(f"{self.where(section, key)}: expected {expected}")
@@ -270,7 +270,7 @@ class _Reader:
     def check_names(self):
         for section, table in self.raw.items():
             if not isinstance(table, dict):
-                raise SceneError(f"{self.path}: {section} = {_fmt(table)}: expected a key inside a section, "
+                raise SceneError(f"{self.path}: {section} = {toml_text(table)}: expected a key inside a section, "
                                  f"one of {', '.join(f'[{s}]' for s in SPEC)}")
             if section not in SPEC:
                 origin = " (from --set)" if any(s == section for s, _ in self.from_set) else ""

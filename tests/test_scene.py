@@ -13,7 +13,7 @@ from mls_mpm import ColorLoss, MassLoss, PositionLoss
 from mls_mpm.images import splat_grid
 from mls_mpm.problem import build, iou, mass_outside, occupied, rest_node_mass
 from mls_mpm.scene import SceneError, load_scene
-from mls_mpm.scene_keys import SPEC, _fmt, parse_override
+from mls_mpm.scene_keys import SPEC, toml_text, parse_override
 
 ROOT = Path(__file__).resolve().parents[1]
 SHIPPED = sorted((ROOT / "scenes").glob("*.toml"))
@@ -450,7 +450,7 @@ def test_readme_documents_every_key_and_default():
             row = re.search(rf"^\| `{key}` \|([^|]*)\|", table, re.M)
             assert row, f"[{section}] {key} missing from scenes/README.md"
             if default is not None:
-                assert f"`{_fmt(default)}`" in row.group(1), f"[{section}] {key}: default {_fmt(default)}"
+                assert f"`{toml_text(default)}`" in row.group(1), f"[{section}] {key}: default {toml_text(default)}"
     for path in SHIPPED:
         assert f"mls-mpm run scenes/{path.name}" in readme, path.name
 
