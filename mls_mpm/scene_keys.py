@@ -217,24 +217,25 @@ def toml_text(v) -> str:
 
 
 def _suggest_section(word) -> str:
-    """"did you mean [sim]?" for the closest section, or the list of sections."""
+    """"did you mean 'sim'?" for the closest section, or the list of sections."""
     close = difflib.get_close_matches(word, list(SPEC), n=1, cutoff=SUGGEST_CUTOFF)
     if close:
-        return f"did you mean [{close[0]}]?"
+        return f"did you mean '{close[0]}'?"
     return "expected one of " + ", ".join(f"[{s}]" for s in SPEC)
 
 
 def _suggest_key(section, key) -> str:
-    """"did you mean control.stride?": the key of that name in another section, else the closest key of any
-    section (those of `section` preferred), else the list of the keys of `section`."""
+    """"did you mean 'n_grid'?" for a key of `section`, "did you mean 'control.stride'?" for one of another
+    section: the key of that name in another section, else the closest key of any section (those of `section`
+    preferred), else the list of the keys of `section`."""
     elsewhere = [s for s in SPEC if s != section and key in SPEC[s]]
     if elsewhere:
-        return "did you mean " + " or ".join(f"{s}.{key}" for s in elsewhere) + "?"
-    scored = [(difflib.SequenceMatcher(None, key, k).ratio() - (0.0 if s == section else ELSEWHERE), f"{s}.{k}")
-              for s, keys in SPEC.items() for k in keys]
+        return "did you mean " + " or ".join(f"'{s}.{key}'" for s in elsewhere) + "?"
+    scored = [(difflib.SequenceMatcher(None, key, k).ratio() - (0.0 if s == section else ELSEWHERE),
+               k if s == section else f"{s}.{k}") for s, keys in SPEC.items() for k in keys]
     score, best = max(scored, key=lambda c: c[0])  # the first of equal scores
     if score >= SUGGEST_CUTOFF:
-        return f"did you mean {best}?"
+        return f"did you mean '{best}'?"
     return "expected one of " + ", ".join(SPEC[section])
 
 

@@ -56,7 +56,7 @@ def scene(tmp_path):
                                                                 r"expected an integer in \[1, 1024\]"),
     ("sim.threads=1000000000000000000000000000000", r"sim\.threads = 10{30} \(from --set\): expected an integer in "
                                                     r"\[0, 1024\]"),
-    ("sim.stride=5", r"sim\.stride = 5 \(from --set\): unknown key in \[sim\]; did you mean control\.stride\?"),
+    ("sim.stride=5", r"sim\.stride = 5 \(from --set\): unknown key in \[sim\]; did you mean 'control\.stride'\?"),
     ("sim.dt=1979-05-27", r"sim\.dt = 1979-05-27 \(from --set\): expected a number > 0$"),
     ("sim.dt=0.019", r"sim\.dt = 0\.019 \(from --set\): expected at most the CFL limit dx / wave speed = "
                      r"0\.018\d+ for these n_grid, E, nu and density$"),

@@ -178,9 +178,9 @@ def test_override_errors_say_so(scene_dir):
         load_scene(path, ["sim.steps=2.5"])
     assert str(e.value) == f"{path}: sim.steps = 2.5 (from --set): expected an integer >= 1"
     with pytest.raises(SceneError, match=r"sim\.n_grd = 3 \(from --set\): unknown key in \[sim\]; "
-                                         r"did you mean sim\.n_grid\?"):
+                                         r"did you mean 'n_grid'\?"):
         load_scene(path, ["sim.n_grd=3"])
-    with pytest.raises(SceneError, match=r"\[simm\] \(from --set\): unknown section; did you mean \[sim\]\?"):
+    with pytest.raises(SceneError, match=r"\[simm\] \(from --set\): unknown section; did you mean 'sim'\?"):
         load_scene(path, ["simm.steps=3"])
 
 
@@ -188,16 +188,16 @@ def test_override_errors_say_so(scene_dir):
 
 REFUSALS = [
     # unknown names
-    ("sim", "n_grd = 32", r"sim\.n_grd = 32: unknown key in \[sim\]; did you mean sim\.n_grid\?"),
-    ("optimize", "iteration = 3", r"optimize\.iteration = 3: unknown key in \[optimize\]; did you mean optimize\.iterations\?"),
-    ("simm", "steps = 3", r"\[simm\]: unknown section; did you mean \[sim\]\?"),
+    ("sim", "n_grd = 32", r"sim\.n_grd = 32: unknown key in \[sim\]; did you mean 'n_grid'\?"),
+    ("optimize", "iteration = 3", r"optimize\.iteration = 3: unknown key in \[optimize\]; did you mean 'iterations'\?"),
+    ("simm", "steps = 3", r"\[simm\]: unknown section; did you mean 'sim'\?"),
     ("render", "zzz = 1", r"render\.zzz = 1: unknown key in \[render\]; expected one of every, size"),
     # a key of another section: named with its section
-    ("sim", "stride = 5", r"sim\.stride = 5: unknown key in \[sim\]; did you mean control\.stride\?"),
-    ("sim", "strid = 5", r"sim\.strid = 5: unknown key in \[sim\]; did you mean control\.stride\?"),
-    ("control", "steps = 5", r"control\.steps = 5: unknown key in \[control\]; did you mean sim\.steps\?"),
-    ("render", "method = 5", r"render\.method = 5: unknown key in \[render\]; did you mean optimize\.method\?"),
-    ("optimize", "kind = 5", r"optimize\.kind = 5: unknown key in \[optimize\]; did you mean loss\.kind\?"),
+    ("sim", "stride = 5", r"sim\.stride = 5: unknown key in \[sim\]; did you mean 'control\.stride'\?"),
+    ("sim", "strid = 5", r"sim\.strid = 5: unknown key in \[sim\]; did you mean 'control\.stride'\?"),
+    ("control", "steps = 5", r"control\.steps = 5: unknown key in \[control\]; did you mean 'sim\.steps'\?"),
+    ("render", "method = 5", r"render\.method = 5: unknown key in \[render\]; did you mean 'optimize\.method'\?"),
+    ("optimize", "kind = 5", r"optimize\.kind = 5: unknown key in \[optimize\]; did you mean 'loss\.kind'\?"),
     # types
     ("sim", "steps = 100.0", r"sim\.steps = 100\.0: expected an integer >= 1"),
     ("sim", "n_grid = true", r"sim\.n_grid = true: expected an integer >= 1"),
@@ -314,7 +314,7 @@ def test_a_key_written_in_another_section_is_named_with_its_own(scene_dir):
                 with pytest.raises(SceneError) as e:
                     load_scene(path)
                 assert str(e.value) == (f"{path}: {wrong}.{key} = 1: unknown key in [{wrong}]; "
-                                        f"did you mean {section}.{key}?")
+                                        f"did you mean '{section}.{key}'?")
 
 
 def test_byte_order_mark_is_allowed(scene_dir):
