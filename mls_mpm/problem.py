@@ -163,9 +163,9 @@ def _check_memory(scene, images, particles):
         raise SceneError(f"{scene.path}: loss.grids = {toml_text(list(ls.grids))}{default}: expected loss grids whose "
                          f"target arrays fit in memory ({need} for {sizes} nodes), {below}")
     if key == "sim.n_grid":
-        raise SceneError(f"{scene.path}: sim.n_grid = {cfg.n_grid}: expected a grid whose particles fit in memory "
-                         f"(up to {particles} particles at sim.particles_per_cell = {cfg.particles_per_cell}, {need} "
-                         f"while sampled), {below}")
+        raise SceneError(f"{scene.path}: sim.n_grid = {cfg.n_grid}, sim.particles_per_cell = {cfg.particles_per_cell}: "
+                         f"expected particles that fit in memory (up to {particles}, {need} while sampled), {below}; "
+                         "lower sim.n_grid or sim.particles_per_cell")
     raise SceneError(f"{scene.path}: {key}: expected an image that fits in memory when decoded ({need}), {below}")
 
 

@@ -34,6 +34,7 @@ TARGET_DENSITY = ("match", "own")
 MIN_LOSS_GRID = 4  # a loss grid needs at least one full 4x4 stencil
 NAME_MAX = 128  # characters of scene.name, one folder name
 NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")  # one path component; never "." or ".."
+INT64 = (-2 ** 63, 2 ** 63 - 1)  # TOML integers
 SUGGEST_CUTOFF = 0.5  # difflib similarity below which no key is suggested
 ELSEWHERE = 0.1  # similarity handicap of a key of another section than the one it was written in
 
@@ -239,6 +240,15 @@ def _suggest_key(section, key) -> str:
     return "expected one of " + ", ".join(SPEC[section])
 
 
+def _int64(v) -> bool:
+    """Whether every integer in v lies in TOML's 64-bit range (the parser reads larger ones, TOML refuses them)."""
+    if isinstance(v, list):
+        return all(_int64(x) for x in v)
+    if isinstance(v, dict):
+        return all(_int64(x) for x in v.values())
+    return not isinstance(v, int) or INT64[0] <= v <= INT64[1]
+
+
 class Reader:
     """Reads one scene's raw TOML tables, remembering which keys came from --set, and words the errors."""
 
@@ -263,9 +273,12 @@ class Reader:
         default, (read, expected) = SPEC[section][key]
         if not self.has(section, key):
             return read(default) if default is not None else None
-        value = read(self.raw[section][key])
+        raw = self.raw[section][key]
+        value = read(raw)
         if value is None:
             self.fail(section, key, expected)
+        if not _int64(raw):
+            self.fail(section, key, f"{expected}, within TOML's 64-bit integers (-2^63 to 2^63 - 1)")
         return value
 
     def check_names(self):

@@ -119,8 +119,12 @@ def never_sample(*_args, **_kwargs):
     (["sim.n_grid=40000", "sim.dt=1e-5"], r"loss\.grids = \[40000\] \(sim\.n_grid when loss\.grids is not set\): "
                                           r"expected loss grids whose target arrays fit"),
     (["sim.n_grid=40000", "sim.dt=1e-5", "loss.grids=[16]"],
-     r"sim\.n_grid = 40000: expected a grid whose particles fit in memory \(up to \d+ particles at "
-     r"sim\.particles_per_cell = 4, about [\d.]+ GiB while sampled\)"),
+     r"sim\.n_grid = 40000, sim\.particles_per_cell = 4: expected particles that fit in memory \(up to \d+, about "
+     r"[\d.]+ GiB while sampled\), below the limit of 1\.8 GiB \(90% of the memory available; sim\.max_memory_gb sets "
+     r"it\); lower sim\.n_grid or sim\.particles_per_cell$"),
+    (["loss.grids=[2000]", "sim.max_memory_gb=0.01"], r"loss\.grids = \[2000\]: expected loss grids whose target "
+                                                       r"arrays fit .*, below the limit of 0\.01 GiB "
+                                                       r"\(sim\.max_memory_gb = 0\.01\)$"),
     (["sim.n_grid=4096", "sim.dt=1e-4"], r"GiB"),  # the particles fit while sampled; the simulator's fields do not
 ])
 def test_memory_refused_before_sampling(capsys, tmp_path, scene, little_memory, monkeypatch, settings, pattern):

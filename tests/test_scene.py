@@ -252,6 +252,9 @@ REFUSALS = [
     ("sim", "particles_per_cell = 1000000000000000000000000000000",
      r"sim\.particles_per_cell = 10{30}: expected an integer in \[1, 1024\]"),
     ("sim", "threads = 1000000000000000000000000000000", r"sim\.threads = 10{30}: expected an integer in \[0, 1024\]"),
+    ("sim", "steps = 1" + "0" * 400, r"sim\.steps = 10{400}: expected an integer >= 1, within TOML's 64-bit integers"),
+    ("loss", "grids = [16, 9223372036854775808]", r"loss\.grids = \[16, 9223372036854775808\]: expected a non-empty "
+                                                  r"list of integers >= 4, within TOML's 64-bit integers"),
     ("sim", "threads = -1", r"sim\.threads = -1: expected an integer in \[0, 1024\]"),
     ("control", "stride = 0", r"control\.stride = 0: expected an integer >= 1"),
     ("control", "stride = 21", r"control\.stride = 21: expected at most sim\.steps = 20"),
