@@ -1,17 +1,66 @@
-"""`mls-mpm check`: the manual gradient of a reduced scene against ti.ad.Tape and central finite differences."""
+"""`mls-mpm check`: the manual gradient of a reduced scene against ti.ad.Tape and central finite differences.
+
+Each comparison passes when its symmetric relative error is within the tolerance, or when the absolute
+difference is below the round-off floor of the loss L: a loss is known to ROUND_OFF |L| at best, so a
+gradient difference below ROUND_OFF |L| (per unit of the controls), or a central difference below
+ROUND_OFF |L| / EPS, cannot be told from round-off (a particle whose controls barely reach the loss has a
+gradient of 1e-19 and a finite difference of exactly 0).
+"""
 import dataclasses
+import math
 
 import numpy as np
 
 from . import problem as problems
+from .errors import UserError
 from .losses import ColorLoss, PositionLoss
-from .simulator import Simulator
+
+EPS = 1e-6  # central-difference step along each random direction
+DIRECTIONS = 3  # random directions of the finite-difference check
+ROUND_OFF = 64 * float(np.finfo(np.float64).eps)  # relative round-off of a float64 loss: 64 ulps
+TINY = 1e-300
+
+
+class CheckError(UserError):
+    """An option of `check` is out of range; the message names it and what is expected."""
 
 
 def rel_err(a, b):
     """Symmetric relative error |a - b| / max(|a|, |b|, tiny) (norms for arrays)."""
     a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
-    return float(np.linalg.norm(a - b) / max(np.linalg.norm(a), np.linalg.norm(b), 1e-300))
+    return float(np.linalg.norm(a - b) / max(np.linalg.norm(a), np.linalg.norm(b), TINY))
+
+
+@dataclasses.dataclass(frozen=True)
+class Comparison:
+    """Two gradients (or directional derivatives) compared: relative and absolute error, and the round-off
+    floor below which an absolute error passes whatever the relative one."""
+
+    rel: float
+    abs: float
+    floor: float
+
+    @classmethod
+    def of(cls, a, b, floor):
+        a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+        return cls(rel_err(a, b), float(np.linalg.norm(a - b)), floor)
+
+    def ok(self, tol) -> bool:
+        return self.rel <= tol or self.abs <= self.floor
+
+    def by_floor(self, tol) -> bool:
+        """Passes only because the absolute error is below the round-off floor."""
+        return self.rel > tol and self.abs <= self.floor
+
+
+def check_options(steps, particles, tol_tape, tol_fd):
+    """Refuse options `check` cannot use, naming the option."""
+    for option, value in (("--steps", steps), ("--particles", particles)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise CheckError(f"check {option} {value}: expected an integer >= 1")
+    for option, value in (("--tol-tape", tol_tape), ("--tol-fd", tol_fd)):
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value > 0):
+            raise CheckError(f"check {option} {value}: expected a finite number > 0")
 
 
 def reduced(scene, steps, particles):
@@ -28,24 +77,36 @@ def reduced(scene, steps, particles):
 
 
 def check_scene(scene, args, emit=print, seed=0):
-    """Print relative errors; true when both are within tolerance."""
+    """Print relative errors; true when both are within tolerance (or below the round-off floor)."""
+    check_options(args.steps, args.particles, args.tol_tape, args.tol_fd)
+    from .simulator import Simulator
+
     cfg, x0, loss = reduced(scene, args.steps, args.particles)
     sim = Simulator(cfg, x0, loss=loss)
     rng = np.random.default_rng(seed)
     c = 0.02 * rng.standard_normal(sim.control_shape)
-    sim.forward(c)
+    L = sim.forward(c)
     g = sim.backward()
     g_tape = sim.gradient_tape(c)
-    e_tape = rel_err(g, g_tape)
-    e_fd = 0.0
-    eps = 1e-6
-    for _ in range(3):
+    fd = []
+    for _ in range(DIRECTIONS):
         d = rng.standard_normal(c.shape)
-        fd = (sim.forward(c + eps * d) - sim.forward(c - eps * d)) / (2 * eps)
-        e_fd = max(e_fd, rel_err(float(np.sum(g * d)), fd))
-    ok = e_tape <= args.tol_tape and e_fd <= args.tol_fd
+        plus, minus = sim.forward(c + EPS * d), sim.forward(c - EPS * d)
+        fd.append((float(np.sum(g * d)), (plus - minus) / (2 * EPS), max(abs(L), abs(plus), abs(minus))))
+    tape = Comparison.of(g, g_tape, ROUND_OFF * abs(L))
+    diffs = [Comparison.of(gd, f, ROUND_OFF * size / EPS) for gd, f, size in fd]
+    worst = max(diffs, key=lambda e: (not e.ok(args.tol_fd), e.rel))
+    ok = tape.ok(args.tol_tape) and all(e.ok(args.tol_fd) for e in diffs)
     emit(f"{scene.name} (reduced: {len(x0)} particles, {cfg.steps} steps, stride {cfg.stride}, f64)")
-    emit(f"  manual vs ti.ad.Tape:              relative error {e_tape:.3e} (tolerance {args.tol_tape:g})")
-    emit(f"  manual vs central differences (3): relative error {e_fd:.3e} (tolerance {args.tol_fd:g})")
+    emit(f"  manual vs ti.ad.Tape:              relative error {tape.rel:.3e} (tolerance {args.tol_tape:g})"
+         + _floor_note(tape, args.tol_tape))
+    emit(f"  manual vs central differences ({DIRECTIONS}): relative error {worst.rel:.3e} (tolerance {args.tol_fd:g})"
+         + _floor_note(worst, args.tol_fd))
     emit("  OK" if ok else "  FAILED: gradient outside tolerance")
     return ok
+
+
+def _floor_note(e, tol):
+    if e.by_floor(tol):
+        return f"; absolute error {e.abs:.3e} below the round-off floor {e.floor:.3e}"
+    return ""

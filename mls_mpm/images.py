@@ -2,10 +2,12 @@
 
 The domain is the unit square with y pointing up; an image's row 0 is its top.
 A pixel is material where its alpha is > 0.5 and it is not white (some RGB channel <= 0.9).
+An image has at most MAX_PIXELS pixels, checked in its header before any pixel is decoded.
 """
 from __future__ import annotations
 
 import math
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -15,25 +17,69 @@ from .errors import UserError
 WHITE = 0.9  # a pixel whose R, G and B all exceed this is background
 OPAQUE = 0.5  # a pixel whose alpha is at most this is background
 JITTER = 0.5  # lattice jitter, as a fraction of the sub-cell spacing
+MAX_PIXELS = 50_000_000  # width x height of the largest image accepted (50 megapixels, 1.6 GB as float RGBA)
+RGBA_BYTES = 4 * 8  # bytes per pixel of the float64 RGBA array load_image returns
+DECODE_BYTES = RGBA_BYTES + 4 + 8  # bytes per pixel while loading: the RGBA array, Pillow's 8-bit copy, temporaries
+STENCIL_NODES = 16  # nodes of a particle's 4 x 4 B-spline stencil
+ROUND_OFF = 1e-9  # cells: particle_bound takes a box edge this close to a cell edge as on it
+CHUNK = 1 << 16  # cells (sample_particles) or particles (splat_grid) processed at a time, to bound temporaries
 
 
 class ImageError(UserError):
     """An image is missing, unreadable or holds no material; the message is one line naming the file."""
 
 
-def load_image(path) -> np.ndarray:
-    """Read an image (palette, grayscale, 16-bit, RGB, RGBA, ...) as (H, W, 4) float RGBA in [0, 1]."""
+@contextmanager
+def _opened(path):
+    """The Pillow image at path, its header read and its size checked against MAX_PIXELS, not yet decoded.
+
+    Pillow's own decompression-bomb limit is lifted meanwhile: the stricter MAX_PIXELS replaces it, and a
+    refusal must name the image's size, which Pillow's error does not give.
+    """
     path = Path(path)
     if not path.is_file():
-        raise ImageError(f"{path}: no such image file")
+        if not path.exists():
+            raise ImageError(f"{path}: no such image file")
+        what = "is a directory" if path.is_dir() else "is not a regular file (a device, pipe or socket)"
+        raise ImageError(f"{path}: {what}; expected an image file")
+    saved = Image.MAX_IMAGE_PIXELS
+    Image.MAX_IMAGE_PIXELS = None
     try:
         with Image.open(path) as img:
             img.seek(0)  # first frame of an animation
-            img.load()
-            return _rgba(img)
-    except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as e:
+            width, height = img.size
+            if width * height > MAX_PIXELS:
+                raise ImageError(f"{path}: the image is {width} x {height} = {width * height / 1e6:.4g} megapixels, "
+                                 f"above the limit of {MAX_PIXELS / 1e6:g} megapixels (images.MAX_PIXELS); "
+                                 "expected a smaller image")
+            yield img
+    except ImageError:
+        raise
+    except (UnidentifiedImageError, OSError, ValueError, SyntaxError, Image.DecompressionBombError) as e:
         reason = " ".join(str(e).split()) or type(e).__name__
         raise ImageError(f"{path}: not an image Pillow can read ({reason})") from None
+    finally:
+        Image.MAX_IMAGE_PIXELS = saved
+
+
+def image_size(path) -> tuple:
+    """(width, height) from an image's header, without decoding its pixels."""
+    with _opened(path) as img:
+        return img.size
+
+
+def check_image(path) -> tuple:
+    """(width, height) of a readable image of at most MAX_PIXELS pixels, its pixels decoded but not converted."""
+    with _opened(path) as img:
+        img.load()
+        return img.size
+
+
+def load_image(path) -> np.ndarray:
+    """Read an image (palette, grayscale, 16-bit, RGB, RGBA, ...) as (H, W, 4) float RGBA in [0, 1]."""
+    with _opened(path) as img:
+        img.load()
+        return _rgba(img)
 
 
 def _rgba(img: Image.Image) -> np.ndarray:
@@ -79,11 +125,43 @@ def pixel_of(x: np.ndarray, shape, region):
     return np.clip(row, 0, H - 1), np.clip(col, 0, W - 1), inside
 
 
+def cell_range(shape, n_grid, region) -> tuple:
+    """(i0, i1, j0, j1): the simulation cells [i0, i1) x [j0, j1) touching an image of shape (H, W, ...) fitted
+    into region; sample_particles draws particles_per_cell points in each."""
+    H, W = shape[:2]
+    ox, oy, s = fit(shape, region)
+    dx = 1.0 / n_grid
+    return math.floor(ox / dx), math.ceil((ox + W * s) / dx), math.floor(oy / dx), math.ceil((oy + H * s) / dx)
+
+
+def particle_bound(mask, n_grid, particles_per_cell, region=None, bound=3) -> int:
+    """An upper bound of the particles sample_particles keeps on the material mask (H, W), without sampling:
+    particles_per_cell times the cells whose interior meets the material pixels' bounding box, or meets each
+    material pixel (at most ceil(s / dx) + 1 cells per axis), whichever is fewer. A box edge within ROUND_OFF
+    of a cell edge is taken as on it (only a particle rounded onto that edge could then be missed)."""
+    mask = np.asarray(mask, bool)
+    region = default_region(n_grid, bound) if region is None else tuple(float(r) for r in region)
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if len(rows) == 0:
+        return 0
+    H, W = mask.shape
+    ox, oy, s = fit(mask.shape, region)
+    dx = 1.0 / n_grid
+    i0, i1, j0, j1 = cell_range(mask.shape, n_grid, region)
+    i_lo = max(i0, math.floor((ox + cols[0] * s) / dx + ROUND_OFF))
+    i_hi = min(i1, math.ceil((ox + (cols[-1] + 1) * s) / dx - ROUND_OFF))
+    j_lo = max(j0, math.floor((oy + (H - 1 - rows[-1]) * s) / dx + ROUND_OFF))
+    j_hi = min(j1, math.ceil((oy + (H - rows[0]) * s) / dx - ROUND_OFF))
+    per_pixel = (math.ceil(s / dx) + 1) ** 2
+    return particles_per_cell * min((i_hi - i_lo) * (j_hi - j_lo), int(np.count_nonzero(mask)) * per_pixel)
+
+
 def sample_particles(rgba, n_grid, particles_per_cell, region=None, seed=0, bound=3):
     """Particles on the material pixels of rgba fitted into region: (x (N, 2), colors (N, 3)).
 
     particles_per_cell per simulation cell: a jittered sqrt(ppc) x sqrt(ppc) lattice when ppc is a square,
     else uniform random points; deterministic for a seed. region defaults to default_region(n_grid, bound).
+    The cells are drawn in chunks (about CHUNK points at a time), so temporaries stay small.
     """
     rgba = np.asarray(rgba, dtype=np.float64)
     if rgba.ndim != 3 or rgba.shape[2] != 4 or min(rgba.shape[:2]) < 1:
@@ -92,27 +170,34 @@ def sample_particles(rgba, n_grid, particles_per_cell, region=None, seed=0, boun
     if not mask.any():
         raise ImageError("image has no material pixels (opaque and not white)")
     region = default_region(n_grid, bound) if region is None else tuple(float(r) for r in region)
-    H, W = rgba.shape[:2]
-    ox, oy, s = fit(rgba.shape, region)
     dx = 1.0 / n_grid
-    i0, i1 = math.floor(ox / dx), math.ceil((ox + W * s) / dx)  # cells touching the fitted image
-    j0, j1 = math.floor(oy / dx), math.ceil((oy + H * s) / dx)
-    cells = np.stack(np.meshgrid(np.arange(i0, i1), np.arange(j0, j1), indexing="ij"), -1).reshape(-1, 1, 2)
+    i0, i1, j0, j1 = cell_range(rgba.shape, n_grid, region)
+    nj = j1 - j0
+    n_cells = (i1 - i0) * nj
     rng = np.random.default_rng(seed)
     k = math.isqrt(particles_per_cell)
-    if k * k == particles_per_cell:  # jittered lattice: sub-cell centres moved by up to JITTER/2 sub-cells
-        a = np.stack(np.meshgrid(np.arange(k), np.arange(k), indexing="ij"), -1).reshape(1, -1, 2)
-        u = 0.5 + JITTER * (rng.random((len(cells), k * k, 2)) - 0.5)
-        offsets = (a + u) / k
-    else:
-        offsets = rng.random((len(cells), particles_per_cell, 2))
-    x = ((cells + offsets) * dx).reshape(-1, 2)
-    row, col, inside = pixel_of(x, rgba.shape, region)
-    keep = inside & mask[row, col]
-    if not keep.any():
+    lattice = k * k == particles_per_cell  # jittered lattice: sub-cell centres moved by up to JITTER/2 sub-cells
+    a = np.stack(np.meshgrid(np.arange(k), np.arange(k), indexing="ij"), -1).reshape(1, -1, 2)
+    xs, colors = [], []
+    step = max(1, CHUNK // particles_per_cell)
+    for start in range(0, n_cells, step):  # cells in i-major order; the random stream does not depend on step
+        index = np.arange(start, min(start + step, n_cells))
+        cells = np.stack([i0 + index // nj, j0 + index % nj], -1)[:, None, :]
+        if lattice:
+            u = 0.5 + JITTER * (rng.random((len(index), k * k, 2)) - 0.5)
+            offsets = (a + u) / k
+        else:
+            offsets = rng.random((len(index), particles_per_cell, 2))
+        x = ((cells + offsets) * dx).reshape(-1, 2)
+        row, col, inside = pixel_of(x, rgba.shape, region)
+        keep = inside & mask[row, col]
+        xs.append(x[keep])
+        colors.append(rgba[row[keep], col[keep], :3])
+    x = np.concatenate(xs)
+    if not len(x):
         raise ImageError(f"image: no particle landed on a material pixel; the shape is smaller than the "
                          f"particle spacing ({dx / max(k, 1):.3g}) at n_grid {n_grid}")
-    return x[keep], rgba[row[keep], col[keep], :3].copy()
+    return x, np.concatenate(colors)
 
 
 def bspline(t: np.ndarray) -> np.ndarray:
@@ -125,21 +210,31 @@ def splat_grid(x, mass, res, values=None) -> np.ndarray:
     """P2G with the cubic B-spline onto a res x res grid: (res, res) mass, or (res, res, C) of mass * values.
 
     mass: a number or one per particle; entry [i, j] is the node at (i / res, j / res); nodes outside are dropped.
+    Particles are splatted in chunks, in order, so the sums do not depend on the chunk size.
     """
     x = np.asarray(x, dtype=np.float64).reshape(-1, 2)
     mass = np.broadcast_to(np.asarray(mass, dtype=np.float64), (len(x),))
-    carried = mass[:, None] if values is None else mass[:, None] * np.asarray(values, np.float64).reshape(len(x), -1)
-    base = np.floor(x * res).astype(np.int64) - 1  # (N, 2)
-    fx = x * res - base  # in [1, 2)
-    offsets = np.arange(4)
-    w = bspline(fx[:, :, None] - offsets)  # (N, 2, 4): weight of node base + j per axis
-    I = base[:, 0, None, None] + offsets[None, :, None]  # (N, 4, 1)
-    J = base[:, 1, None, None] + offsets[None, None, :]  # (N, 1, 4)
-    N = w[:, 0, :, None] * w[:, 1, None, :]  # (N, 4, 4)
-    I, J = np.broadcast_arrays(I, J)
-    ok = (I >= 0) & (I < res) & (J >= 0) & (J < res)
-    grid = np.zeros((res * res, carried.shape[1]))
-    p = np.broadcast_to(np.arange(len(x))[:, None, None], ok.shape)[ok]
-    np.add.at(grid, I[ok] * res + J[ok], N[ok][:, None] * carried[p])
+    values = None if values is None else np.asarray(values, np.float64).reshape(len(x), -1)
+    grid = np.zeros((res * res, 1 if values is None else values.shape[1]))
+    step = max(1, CHUNK // STENCIL_NODES)
+    for start in range(0, len(x), step):
+        part = slice(start, start + step)
+        _splat_into(grid, res, x[part], mass[part], None if values is None else values[part])
     grid = grid.reshape(res, res, -1)
     return grid[..., 0] if values is None else grid
+
+
+def _splat_into(grid, res, x, mass, values):
+    """Add the particles x (n, 2) of mass (n,) carrying values (n, C) or None to grid (res^2, C)."""
+    carried = mass[:, None] if values is None else mass[:, None] * values
+    base = np.floor(x * res).astype(np.int64) - 1  # (n, 2)
+    fx = x * res - base  # in [1, 2)
+    offsets = np.arange(4)
+    w = bspline(fx[:, :, None] - offsets)  # (n, 2, 4): weight of node base + j per axis
+    I = base[:, 0, None, None] + offsets[None, :, None]  # (n, 4, 1)
+    J = base[:, 1, None, None] + offsets[None, None, :]  # (n, 1, 4)
+    N = w[:, 0, :, None] * w[:, 1, None, :]  # (n, 4, 4)
+    I, J = np.broadcast_arrays(I, J)
+    ok = (I >= 0) & (I < res) & (J >= 0) & (J < res)
+    p = np.broadcast_to(np.arange(len(x))[:, None, None], ok.shape)[ok]
+    np.add.at(grid, I[ok] * res + J[ok], N[ok][:, None] * carried[p])

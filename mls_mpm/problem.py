@@ -2,6 +2,9 @@
 
 `build(scene)` turns images into particles (images.sample_particles) and target grids (images.splat_grid);
 the metrics (occupied, iou, mass_outside) compare a final mass grid with a target grid for summary.json.
+Before anything large is allocated, build refuses a scene whose arrays would not fit in memory: the decoded
+images, the sampled particles (an upper bound of their number from the fitted images), the numpy target grids,
+then (memory.check_memory) the simulator's fields.
 """
 from __future__ import annotations
 
@@ -9,11 +12,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .images import ImageError, default_region, load_image, pixel_of, sample_particles, splat_grid
+from . import memory
+from .images import (DECODE_BYTES, ImageError, default_region, image_size, load_image, material, particle_bound,
+                     pixel_of, sample_particles, splat_grid)
 from .losses import ColorLoss, MassLoss, PositionLoss
+from .memory import check_memory
 from .scene import SceneError
+from .scene_keys import toml_text
 
 EMPTY = 1e-6  # a target node is empty where its mass is at most EMPTY times the grid's largest
+WORD = 8  # bytes of a float64 entry
+PARTICLE_WORDS = 2 * (2 + 3)  # float64 words per sampled particle: x (2) and RGB (3), chunks and their concatenation
+GRID_TEMPORARIES = 2  # float64 words per loss-grid node of temporaries while a target grid is made
+PENALTY_IMAGE_WORDS = 6  # float64 words per loss-grid node while alpha is read from a penalty image
 
 
 @dataclass
@@ -29,11 +40,6 @@ class Problem:
     target_points: np.ndarray | None = None  # (M, 2) particles sampled on the target image, or None
     target_colors: np.ndarray | None = None  # (M, 3) their RGB, or None
     alpha: list | None = None  # (res, res) penalty alpha_i per loss grid (eq 72), or None
-
-    @property
-    def finest_res(self) -> int:
-        """Alias of res."""
-        return self.res
 
 
 def rest_node_mass(cfg, res: int) -> float:
@@ -69,7 +75,21 @@ def mass_outside(mass, target) -> float:
 def build(scene) -> Problem:
     """Sample the scene's images and make its loss object (thesis 5.4-5.6, 8.1, 8.2)."""
     cfg, ls = scene.sim, scene.loss
-    x0, colors = _sample(scene, "scene.initial", scene.initial)
+    images = {"scene.initial": scene.initial}
+    if scene.target is not None:
+        images["scene.target"] = scene.target
+    if not isinstance(ls.penalty, (int, float)):
+        images["loss.penalty"] = ls.penalty
+    decoded = {key: _decode_bytes(scene, key, path) for key, path in images.items()}
+    _check_memory(scene, decoded, 0)
+    initial = _load(scene, "scene.initial", scene.initial)
+    target = None if scene.target is None else _load(scene, "scene.target", scene.target)
+    n_upper = _particle_bound(scene, initial)
+    m_upper = 0 if target is None else _particle_bound(scene, target)
+    _check_memory(scene, decoded, n_upper + m_upper)
+    check_memory(cfg, n_upper, grids=loss_grids(ls), where=f"{scene.path}: ")
+
+    x0, colors = _sample(scene, "scene.initial", initial)
     if ls.kind == "position":
         centroid = x0.mean(axis=0)
         target_x = centroid + np.asarray(ls.target_scale) * (x0 - centroid) + np.asarray(ls.target_offset)
@@ -82,7 +102,7 @@ def build(scene) -> Problem:
         grids = [splat_grid(target_x, cfg.m_p, res) for res in ls.grids]
         return Problem(x0, colors, PositionLoss(target_x), target_x, grids, max(ls.grids))
 
-    tx, tcolors = _sample(scene, "scene.target", scene.target)
+    tx, tcolors = _sample(scene, "scene.target", target)
     m_t = cfg.m_p * (len(x0) / len(tx) if scene.target_density == "match" else 1.0)
     grids = [splat_grid(tx, m_t, res) for res in ls.grids]
     alpha = None
@@ -96,12 +116,90 @@ def build(scene) -> Problem:
     return Problem(x0, colors, loss, None, grids, max(ls.grids), tx, tcolors, alpha)
 
 
-def _sample(scene, key, path):
+def loss_grids(ls) -> list:
+    """(res, channels, has_alpha) of each loss grid the simulator allocates for these [loss] settings."""
+    if ls.kind == "position":
+        return []
+    channels = 3 if ls.kind == "color" else 1
+    return [(res, channels, bool(ls.penalty)) for res in ls.grids]
+
+
+def target_grid_bytes(ls) -> int:
+    """Bytes of the numpy target grids build makes: per node a mass (position and mass losses, and the metrics),
+    three colour-mass channels (color loss), alpha (penalty; node positions and pixels for a penalty image),
+    and temporaries."""
+    image = not isinstance(ls.penalty, (int, float))
+    words = 1 + (3 if ls.kind == "color" else 0) + (1 if ls.penalty else 0) + (PENALTY_IMAGE_WORDS if image else 0) \
+        + GRID_TEMPORARIES
+    return sum(res * res * words * WORD for res in ls.grids)
+
+
+def _memory_limit(cfg):
+    """(bytes, words): sim.max_memory_gb, else 90% of the memory available; (None, "") where unknown."""
+    if cfg.max_memory_gb:
+        return cfg.max_memory_gb * 2 ** 30, f"sim.max_memory_gb = {cfg.max_memory_gb:g}"
+    free = memory.available_bytes()
+    return (0.9 * free, "90% of the memory available; sim.max_memory_gb sets it") if free else (None, "")
+
+
+def _check_memory(scene, images, particles):
+    """Refuse, naming the largest part's key, when the decoded images (key -> bytes), the sampled particles
+    (an upper bound of their number) and the numpy target grids would not fit."""
+    limit, words = _memory_limit(scene.sim)
+    if limit is None:
+        return
+    ls, cfg = scene.loss, scene.sim
+    parts = dict(images)
+    parts["sim.n_grid"] = particles * PARTICLE_WORDS * WORD
+    parts["loss.grids"] = target_grid_bytes(ls)
+    if sum(parts.values()) <= limit:
+        return
+    key = max(parts, key=parts.get)
+    need = f"about {parts[key] / 2 ** 30:.3g} GiB"
+    below = f"below the limit of {limit / 2 ** 30:.3g} GiB ({words})"
+    if key == "loss.grids":
+        sizes = ", ".join(f"{res}^2" for res in ls.grids)
+        default = " (sim.n_grid when loss.grids is not set)" if ls.grids == (cfg.n_grid,) else ""
+        raise SceneError(f"{scene.path}: loss.grids = {toml_text(list(ls.grids))}{default}: expected loss grids whose "
+                         f"target arrays fit in memory ({need} for {sizes} nodes), {below}")
+    if key == "sim.n_grid":
+        raise SceneError(f"{scene.path}: sim.n_grid = {cfg.n_grid}, sim.particles_per_cell = {cfg.particles_per_cell}: "
+                         f"expected particles that fit in memory (up to {particles}, {need} while sampled), {below}; "
+                         "lower sim.n_grid or sim.particles_per_cell")
+    raise SceneError(f"{scene.path}: {key}: expected an image that fits in memory when decoded ({need}), {below}")
+
+
+def _decode_bytes(scene, key, path):
+    """Bytes of one image while it is decoded, from its header."""
+    width, height = _worded(scene, key, path, image_size)
+    return width * height * DECODE_BYTES
+
+
+def _load(scene, key, path):
+    """An image of the scene as (H, W, 4) float RGBA."""
+    return _worded(scene, key, path, load_image)
+
+
+def _worded(scene, key, path, read):
+    """read(path), with image errors worded as scene errors."""
+    try:
+        return read(path)
+    except ImageError as e:
+        raise SceneError(f"{scene.path}: {key} = \"{path}\": expected an image file ({e})") from None
+
+
+def _particle_bound(scene, rgba):
+    return particle_bound(material(rgba), scene.sim.n_grid, scene.sim.particles_per_cell, scene.region,
+                          bound=scene.sim.bound)
+
+
+def _sample(scene, key, rgba):
     """Particles of one of the scene's images, with image errors worded as scene errors."""
     try:
-        return sample_particles(load_image(path), scene.sim.n_grid, scene.sim.particles_per_cell, scene.region,
-                                scene.seed, bound=scene.sim.bound)
+        return sample_particles(rgba, scene.sim.n_grid, scene.sim.particles_per_cell, scene.region, scene.seed,
+                                bound=scene.sim.bound)
     except ImageError as e:
+        path = scene.initial if key == "scene.initial" else scene.target
         raise SceneError(f"{scene.path}: {key} = \"{path}\": expected an image with material ({e})") from None
 
 
@@ -110,7 +208,7 @@ def _alpha(scene, target):
     res = target.shape[0]
     ls = scene.loss
     if not isinstance(ls.penalty, (int, float)):
-        rgba = load_image(ls.penalty)
+        rgba = _load(scene, "loss.penalty", ls.penalty)
         gray = rgba[..., :3].mean(axis=-1) * rgba[..., 3] + (1.0 - rgba[..., 3])  # transparent reads as white
         nodes = np.stack(np.meshgrid(np.arange(res), np.arange(res), indexing="ij"), -1).reshape(-1, 2) / res
         region = scene.region or default_region(scene.sim.n_grid, scene.sim.bound)

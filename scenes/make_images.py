@@ -5,6 +5,8 @@ Disks are centred at pixel (32, 32); "cells" refer to the circle_to_torus scene,
 64 pixels onto 16 cells of the 32 x 32 grid (4 pixels per cell).
 """
 import math
+import os
+import tempfile
 from pathlib import Path
 
 from PIL import Image, ImageChops, ImageDraw
@@ -144,12 +146,27 @@ def images():
     }
 
 
-def main():
-    """Write every image as scenes/images/<name>.png."""
-    OUT.mkdir(exist_ok=True)
+def save(img, path):
+    """Write img as a PNG atomically (a temp file beside path, then renamed over it), readable by all (0644)."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            img.save(fh, format="PNG", optimize=True)
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def main(out=OUT):
+    """Write every image as <out>/<name>.png (default: scenes/images/)."""
+    out = Path(out)
+    out.mkdir(exist_ok=True)
     for name, img in images().items():
-        img.save(OUT / f"{name}.png", optimize=True)
-        print(OUT / f"{name}.png")
+        save(img, out / f"{name}.png")
+        print(out / f"{name}.png")
 
 
 if __name__ == "__main__":

@@ -1,10 +1,15 @@
 """Images -> particles and grids (mls_mpm/images.py): formats, sampling counts, colors, fit, splatting."""
+import struct
+import zlib
+from pathlib import Path
+
 import numpy as np
 import pytest
 from PIL import Image
 
-from mls_mpm.images import (ImageError, bspline, default_region, fit, load_image, material, sample_particles,
-                            splat_grid)
+from mls_mpm import images
+from mls_mpm.images import (MAX_PIXELS, ImageError, bspline, check_image, default_region, fit, load_image, material,
+                            particle_bound, sample_particles, splat_grid)
 
 
 def rgba(mask, color=(0.0, 0.0, 0.0)):
@@ -206,3 +211,105 @@ def test_splat_entry_ij_is_node_at_i_dx_j_dx():
     """A particle exactly on node (i, j) puts 4/9 of its mass there (N1(0)^2)."""
     g = splat_grid(np.array([[5 / 16, 9 / 16]]), 1.0, 16)
     assert g[5, 9] == pytest.approx(4 / 9) and g.argmax() == 5 * 16 + 9
+
+
+# ---- files that are not images, and images too large --------------------------------------------------------
+
+def png_header(path, width, height):
+    """A PNG whose header claims width x height 8-bit gray pixels, followed by no pixel data."""
+    def chunk(kind, data):
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+    ihdr = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(b"")) +
+                     chunk(b"IEND", b""))
+    return path
+
+
+@pytest.mark.parametrize("width, height", [(100000, 100000), (20000, 20000), (MAX_PIXELS // 1000 + 1, 1000)])
+@pytest.mark.parametrize("read", [load_image, check_image])
+def test_image_above_the_pixel_limit_refused_from_its_header(tmp_path, width, height, read):
+    """Refused before decoding (the file holds no pixel data), naming the file, its size and the limit; sizes
+    above Pillow's own decompression-bomb limit (2 x 89 megapixels) included."""
+    path = png_header(tmp_path / "huge.png", width, height)
+    with pytest.raises(ImageError) as e:
+        read(path)
+    message = str(e.value)
+    assert message == (f"{path}: the image is {width} x {height} = {width * height / 1e6:.4g} megapixels, above the "
+                       f"limit of 50 megapixels (images.MAX_PIXELS); expected a smaller image")
+    assert Image.MAX_IMAGE_PIXELS is not None  # Pillow's own limit is back in place
+
+
+def test_image_at_the_pixel_limit_is_read_to_its_pixels(tmp_path):
+    """A header at exactly MAX_PIXELS passes the size check; its missing pixel data is then what is refused."""
+    path = png_header(tmp_path / "big.png", MAX_PIXELS // 1000, 1000)
+    with pytest.raises(ImageError, match=r"big\.png: not an image Pillow can read \("):
+        check_image(path)
+
+
+@pytest.mark.parametrize("make, what", [
+    (lambda tmp: (tmp / "folder.png").mkdir() or tmp / "folder.png", "is a directory; expected an image file"),
+    (lambda tmp: Path("/dev/zero"), "is not a regular file (a device, pipe or socket); expected an image file"),
+])
+def test_directory_or_device_named_for_what_it_is(tmp_path, make, what):
+    path = make(tmp_path)
+    for read in (load_image, check_image):
+        with pytest.raises(ImageError) as e:
+            read(path)
+        assert str(e.value) == f"{path}: {what}"
+
+
+def test_check_image_gives_the_size(tmp_path, disk_u8):
+    Image.fromarray(disk_u8[:, :20]).save(tmp_path / "d.png")
+    assert check_image(tmp_path / "d.png") == (20, 32)
+
+
+# ---- chunks and the particle bound -------------------------------------------------------------------------
+
+@pytest.mark.parametrize("ppc", [4, 3])
+def test_sampling_and_splatting_do_not_depend_on_the_chunk_size(monkeypatch, ppc):
+    """Cells (and particles) are processed CHUNK at a time: the same particles, colors and grids, bit for bit,
+    whether a chunk holds a few cells or all of them."""
+    img = rgba(disk_mask(50, 20), color=(0.2, 0.4, 0.6))
+    x, c = sample_particles(img, 64, ppc, seed=5)
+    grids = splat_grid(x, 0.5, 40), splat_grid(x, 0.5, 40, c)
+    monkeypatch.setattr(images, "CHUNK", 17)
+    x2, c2 = sample_particles(img, 64, ppc, seed=5)
+    np.testing.assert_array_equal(x2, x)
+    np.testing.assert_array_equal(c2, c)
+    np.testing.assert_array_equal(splat_grid(x, 0.5, 40), grids[0])
+    np.testing.assert_array_equal(splat_grid(x, 0.5, 40, c), grids[1])
+
+
+@pytest.mark.parametrize("n_grid, ppc, size, r", [(32, 4, 64, 28), (64, 9, 16, 3), (128, 2, 300, 40), (400, 1, 6, 2)])
+def test_particle_bound_holds_and_is_close(n_grid, ppc, size, r):
+    """particle_bound >= the particles sampled, for images finer and coarser than the grid, and within 1.6 x
+    of them for a disk (the bounding box of a disk is 4 / pi of its area, plus the cells its edge cuts)."""
+    mask = disk_mask(size, r)
+    n = len(sample_particles(rgba(mask), n_grid, ppc)[0])
+    bound = particle_bound(mask, n_grid, ppc)
+    assert n <= bound <= 1.6 * n, (n, bound)
+
+
+def test_particle_bound_counts_only_the_material_box():
+    """A small shape in the corner of a large white image: bounded by its own cells, not the image's."""
+    mask = np.zeros((400, 400), bool)
+    mask[:40, :40] = True
+    n = len(sample_particles(rgba(mask), 64, 4)[0])
+    assert n <= particle_bound(mask, 64, 4) <= 2 * n  # the image's own cells would give 95 n
+    assert particle_bound(np.zeros((8, 8), bool), 64, 4) == 0
+
+
+# ---- scenes/make_images.py ---------------------------------------------------------------------------------
+
+def test_make_images_reproduces_the_shipped_images(tmp_path, monkeypatch):
+    """The generator writes every shipped image byte for byte, each readable by all, and no temp file."""
+    root = Path(__file__).resolve().parents[1]
+    monkeypatch.syspath_prepend(str(root / "scenes"))
+    import make_images
+
+    make_images.main(tmp_path)
+    written = sorted(p.name for p in tmp_path.iterdir())
+    assert written == sorted(p.name for p in (root / "scenes" / "images").glob("*.png"))
+    for name in written:
+        assert (tmp_path / name).read_bytes() == (root / "scenes" / "images" / name).read_bytes(), name
+        assert (tmp_path / name).stat().st_mode & 0o777 == 0o644, name

@@ -2,6 +2,7 @@
 the shipped scenes, target grids and metrics. No simulation runs here."""
 import json
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -11,7 +12,8 @@ from PIL import Image
 from mls_mpm import ColorLoss, MassLoss, PositionLoss
 from mls_mpm.images import splat_grid
 from mls_mpm.problem import build, iou, mass_outside, occupied, rest_node_mass
-from mls_mpm.scene import SPEC, SceneError, _fmt, load_scene, parse_override
+from mls_mpm.scene import SceneError, load_scene
+from mls_mpm.scene_keys import SPEC, toml_text, parse_override
 
 ROOT = Path(__file__).resolve().parents[1]
 SHIPPED = sorted((ROOT / "scenes").glob("*.toml"))
@@ -190,6 +192,12 @@ REFUSALS = [
     ("optimize", "iteration = 3", r"optimize\.iteration = 3: unknown key in \[optimize\]; did you mean 'iterations'\?"),
     ("simm", "steps = 3", r"\[simm\]: unknown section; did you mean 'sim'\?"),
     ("render", "zzz = 1", r"render\.zzz = 1: unknown key in \[render\]; expected one of every, size"),
+    # a key of another section: named with its section
+    ("sim", "stride = 5", r"sim\.stride = 5: unknown key in \[sim\]; did you mean 'control\.stride'\?"),
+    ("sim", "strid = 5", r"sim\.strid = 5: unknown key in \[sim\]; did you mean 'control\.stride'\?"),
+    ("control", "steps = 5", r"control\.steps = 5: unknown key in \[control\]; did you mean 'sim\.steps'\?"),
+    ("render", "method = 5", r"render\.method = 5: unknown key in \[render\]; did you mean 'optimize\.method'\?"),
+    ("optimize", "kind = 5", r"optimize\.kind = 5: unknown key in \[optimize\]; did you mean 'loss\.kind'\?"),
     # types
     ("sim", "steps = 100.0", r"sim\.steps = 100\.0: expected an integer >= 1"),
     ("sim", "n_grid = true", r"sim\.n_grid = true: expected an integer >= 1"),
@@ -201,6 +209,19 @@ REFUSALS = [
     ("sim", 'schedule = "fast"', r'sim\.schedule = "fast": expected one of "auto", "serial", "parallel"'),
     ("scene", "seed = -1", r"scene\.seed = -1: expected an integer >= 0"),
     ("scene", 'name = "a b"', r'scene\.name = "a b": expected a name of letters'),
+    ("scene", 'name = ".."', r'scene\.name = "\.\.": expected a name of letters, digits, .* starting with a letter'),
+    ("scene", 'name = "."', r'scene\.name = "\.": expected a name of letters'),
+    ("scene", 'name = ".hidden"', r'scene\.name = "\.hidden": expected a name of letters'),
+    ("scene", 'name = "-x"', r'scene\.name = "-x": expected a name of letters'),
+    ("scene", 'name = "a/b"', r'scene\.name = "a/b": expected a name of letters'),
+    ("scene", 'name = "../out"', r'scene\.name = "\.\./out": expected a name of letters'),
+    ("scene", 'name = ""', r'scene\.name = "": expected a name of letters'),
+    ("scene", f'name = "{"a" * 129}"', r'scene\.name = "a{129}": expected a name of .* at most 128 characters'),
+    # dates print as TOML writes them
+    ("sim", "dt = 1979-05-27", r"sim\.dt = 1979-05-27: expected a number > 0$"),
+    ("sim", "steps = 1979-05-27T07:32:00Z", r"sim\.steps = 1979-05-27T07:32:00\+00:00: expected an integer"),
+    ("sim", "steps = 07:32:00.5", r"sim\.steps = 07:32:00\.500000: expected an integer"),
+    ("optimize", "lr = [1979-05-27]", r"optimize\.lr = \[1979-05-27\]: expected a number > 0"),
     ("scene", 'target_density = "same"', r'scene\.target_density = "same": expected one of "match", "own"'),
     ("scene", "region = [0.2, 0.2]", r"scene\.region = \[0\.2, 0\.2\]: expected \[x0, y0, x1, y1\]"),
     ("loss", 'kind = "masss"', r'loss\.kind = "masss": expected one of "position", "mass", "log_mass", "color"'),
@@ -224,8 +245,17 @@ REFUSALS = [
     ("sim", "density = 0", r"sim\.density = 0: expected a number > 0"),
     ("sim", "gamma = -1", r"sim\.gamma = -1: expected a number >= 0"),
     ("sim", "gamma = 300.0", r"sim\.gamma \* dt = 1\.5: expected < 1"),
-    ("sim", "n_grid = 11", r"sim\.n_grid = 11: expected an integer >= 12 \(2 \(bound \+ 2\) \+ 2 for bound = 3\)"),
-    ("sim", "particles_per_cell = 0", r"sim\.particles_per_cell = 0: expected an integer >= 1"),
+    ("sim", "bound = 0\nn_grid = 5", r"sim\.n_grid = 5: expected an integer >= 6 for sim\.bound = 0"),
+    ("sim", "n_grid = 11", r"sim\.n_grid = 11: expected an integer >= 12 for sim\.bound = 3 \(config\.min_n_grid\)"),
+    ("sim", "particles_per_cell = 0", r"sim\.particles_per_cell = 0: expected an integer in \[1, 1024\]"),
+    ("sim", "particles_per_cell = 1025", r"sim\.particles_per_cell = 1025: expected an integer in \[1, 1024\]"),
+    ("sim", "particles_per_cell = 1000000000000000000000000000000",
+     r"sim\.particles_per_cell = 10{30}: expected an integer in \[1, 1024\]"),
+    ("sim", "threads = 1000000000000000000000000000000", r"sim\.threads = 10{30}: expected an integer in \[0, 1024\]"),
+    ("sim", "steps = 1" + "0" * 400, r"sim\.steps = 10{400}: expected an integer >= 1, within TOML's 64-bit integers"),
+    ("loss", "grids = [16, 9223372036854775808]", r"loss\.grids = \[16, 9223372036854775808\]: expected a non-empty "
+                                                  r"list of integers >= 4, within TOML's 64-bit integers"),
+    ("sim", "threads = -1", r"sim\.threads = -1: expected an integer in \[0, 1024\]"),
     ("control", "stride = 0", r"control\.stride = 0: expected an integer >= 1"),
     ("control", "stride = 21", r"control\.stride = 21: expected at most sim\.steps = 20"),
     ("scene", "region = [0.0, 0.2, 0.8, 0.8]", r"scene\.region = \[0\.0, 0\.2, 0\.8, 0\.8\]: expected \[x0, y0, x1, y1\] "
@@ -243,7 +273,9 @@ REFUSALS = [
     ("optimize", "rounds = 0", r"optimize\.rounds = 0: expected an integer >= 1"),
     ("optimize", "adam_beta2 = 1.0", r"optimize\.adam_beta2 = 1\.0: expected a number in \[0, 1\)"),
     ("render", "every = 0", r"render\.every = 0: expected an integer >= 1"),
-    ("render", "size = 8", r"render\.size = 8: expected an integer >= 16"),
+    ("render", "size = 8", r"render\.size = 8: expected an integer in \[16, 8192\]"),
+    ("render", "size = 8193", r"render\.size = 8193: expected an integer in \[16, 8192\]"),
+    ("render", "size = 100000", r"render\.size = 100000: expected an integer in \[16, 8192\]"),
     # images
     ("scene", 'initial = "img/missing.png"', r'scene\.initial = "img/missing\.png": expected an image file '
                                              r'\(.*missing\.png: no such image file\)'),
@@ -270,6 +302,73 @@ def test_refusals(scene_dir, section, line, pattern):
     message = str(e.value)
     assert "\n" not in message and message.startswith(f"{path}: ")
     assert re.search(pattern, message), message
+
+
+def test_a_key_written_in_another_section_is_named_with_its_own(scene_dir):
+    """Every key of every section, written into each other section, is refused with "did you mean <its
+    section>.<key>?"."""
+    for section, keys in SPEC.items():
+        for key in keys:
+            for wrong in SPEC:
+                if wrong == section:
+                    continue
+                path = write(scene_dir, BASE + f"\n[{wrong}]\n{key} = 1\n" if f"[{wrong}]" not in BASE
+                             else BASE.replace(f"[{wrong}]\n", f"[{wrong}]\n{key} = 1\n"))
+                with pytest.raises(SceneError) as e:
+                    load_scene(path)
+                assert str(e.value) == (f"{path}: {wrong}.{key} = 1: unknown key in [{wrong}]; "
+                                        f"did you mean '{section}.{key}'?")
+
+
+def test_byte_order_mark_is_allowed(scene_dir):
+    path = scene_dir / "bom.toml"
+    path.write_bytes(b"\xef\xbb\xbf" + BASE.encode())
+    assert load_scene(path).sim.n_grid == 32
+
+
+def test_cfl_refusal_is_one_line_with_digits_that_tell_dt_above_the_limit(scene_dir):
+    """dt one ulp above the limit: no CFLWarning besides the refusal, and the printed numbers, read back,
+    show dt > limit."""
+    limit = load_scene(write(scene_dir, BASE)).sim.cfl_dt
+    dt = float(np.nextafter(limit, np.inf))
+    path = write(scene_dir, re.sub(r"^dt = .*$", f"dt = {dt!r}", BASE, flags=re.M))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        with pytest.raises(SceneError) as e:
+            load_scene(path)
+    assert not caught, [str(w.message) for w in caught]
+    m = re.fullmatch(rf"{re.escape(str(path))}: sim\.dt = (\S+): expected at most the CFL limit dx / wave speed = "
+                     r"(\S+) for these n_grid, E, nu and density", str(e.value))
+    assert m, str(e.value)
+    assert float(m.group(1)) == dt and float(m.group(2)) == limit and float(m.group(1)) > float(m.group(2))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # at the limit itself: loads, and warns nothing
+        assert load_scene(write(scene_dir, re.sub(r"^dt = .*$", f"dt = {limit!r}", BASE, flags=re.M))).sim.dt == limit
+
+
+@pytest.mark.parametrize("stem", ["..", ".", "my scene", ".hidden"])
+def test_a_file_name_that_is_not_a_name_needs_scene_name(scene_dir, stem):
+    """Without scene.name the file name names the output folder, so it must be a valid name too."""
+    path = write(scene_dir, BASE, name=f"{stem}.toml")
+    with pytest.raises(SceneError) as e:
+        load_scene(path)
+    assert str(e.value).startswith(f"{path}: scene.name: missing, and the file name {json.dumps(stem)} is not a "
+                                   "valid name; expected a name of letters")
+    assert load_scene(path, ['scene.name="ok"']).name == "ok"
+
+
+def test_directory_or_device_as_scene_file(scene_dir):
+    with pytest.raises(SceneError) as e:
+        load_scene(scene_dir)
+    assert str(e.value) == f"{scene_dir}: is a directory; expected a scene file (TOML)"
+    with pytest.raises(SceneError) as e:
+        load_scene("/dev/zero")
+    assert str(e.value) == "/dev/zero: is not a regular file (a device, pipe or socket); expected a scene file (TOML)"
+
+
+def test_methods_are_the_optimizers():
+    from mls_mpm.optimize import METHODS
+    assert SPEC["optimize"]["method"][1][1] == "one of " + ", ".join(f'"{m}"' for m in METHODS)
 
 
 def test_missing_initial_and_target(scene_dir):
@@ -354,7 +453,7 @@ def test_readme_documents_every_key_and_default():
             row = re.search(rf"^\| `{key}` \|([^|]*)\|", table, re.M)
             assert row, f"[{section}] {key} missing from scenes/README.md"
             if default is not None:
-                assert f"`{_fmt(default)}`" in row.group(1), f"[{section}] {key}: default {_fmt(default)}"
+                assert f"`{toml_text(default)}`" in row.group(1), f"[{section}] {key}: default {toml_text(default)}"
     for path in SHIPPED:
         assert f"mls-mpm run scenes/{path.name}" in readme, path.name
 
