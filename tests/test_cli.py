@@ -270,13 +270,19 @@ def test_check_passes_and_prints_relative_errors():
     assert "300 particles, 12 steps" in stdout
 
 
-def test_check_fails_beyond_tolerance():
-    """Tolerances of 1e-300: the same (non-zero) finite-difference error now fails the check, with exit code 1."""
+def test_check_fails_beyond_tolerance(monkeypatch):
+    """A manual gradient 1% off (a deliberately broken backward) fails both comparisons, far above the round-off
+    floor, with exit code 1 and FAILED."""
+    from mls_mpm.simulator import Simulator
+
+    right = Simulator.backward
+    monkeypatch.setattr(Simulator, "backward", lambda self, *a, **k: 1.01 * right(self, *a, **k))
     fresh_taichi()
-    code, stdout, _ = call("check", TINY, "--tol-tape", "1e-300", "--tol-fd", "1e-300")
+    code, stdout, _ = call("check", TINY)
     assert code == 1
     assert "FAILED" in stdout
-    assert float(CHECK_LINE.findall(stdout)[1][0]) > 0.0
+    errors = [float(e[0]) for e in CHECK_LINE.findall(stdout)]
+    assert len(errors) == 2 and all(9e-3 < e < 1.1e-2 for e in errors), errors
 
 
 # ---------------------------------------------------------------------------------------------------------
