@@ -1,0 +1,168 @@
+"""L-BFGS (Nocedal & Wright, Numerical Optimization, 2nd ed.: Alg 7.4, 7.5) with a strong Wolfe line search
+(Alg 3.5, 3.6), in numpy on flat vectors, so that its whole state can be saved and restored exactly.
+
+The state between two iterations is the iterate x, its loss f and gradient g, and the curvature pairs
+s = x_{k+1} - x_k, y = g_{k+1} - g_k of the last MEMORY iterations, oldest first. `iterate` maps one state to
+the next with no other memory, so an optimizer that saves that state after every iteration and later restarts
+from it continues exactly as if it had not stopped.
+
+The loss is given as two callables: loss(x) -> float (math.inf where the trial cannot be evaluated, e.g. the
+simulation left the grid) and grad() -> the gradient at the x of the last loss call. Gradients are asked for
+only at trials that pass the sufficient-decrease test, which saves a reverse pass per rejected trial.
+"""
+import math
+
+import numpy as np
+
+MEMORY = 10  # m: curvature pairs kept (N&W 7.2 suggest 3 to 20; scipy's L-BFGS-B default is 10)
+C1 = 1e-4  # sufficient decrease: f(x + a p) <= f + C1 a g.p (N&W 3.6a)
+C2 = 0.9  # curvature: |g(x + a p).p| <= C2 |g.p| (N&W 3.7b; 0.9 for quasi-Newton directions)
+MAX_TRIALS = 20  # loss evaluations per line search (scipy's maxls)
+GROW = 2.0  # the bracketing phase multiplies the trial step by this while it is too short
+CURVATURE_EPS = 1e-10  # a pair is kept only if s.y > CURVATURE_EPS |s| |y|, which keeps H positive definite
+SAFEGUARD = 0.1  # an interpolated zoom trial keeps this fraction of the interval away from either end
+
+
+def direction(g, S, Y):
+    """Search direction p = -H g by the two-loop recursion (Alg 7.4) over the pairs (S[i], Y[i]), oldest first,
+    with H_0 = (s.y / y.y) I of the newest pair (eq 7.20); p = -g without pairs."""
+    q = np.array(g, dtype=np.float64)
+    if len(S) == 0:
+        return -q
+    rho = [1.0 / float(np.dot(y, s)) for s, y in zip(S, Y)]
+    alpha = [0.0] * len(S)
+    for i in range(len(S) - 1, -1, -1):
+        alpha[i] = rho[i] * float(np.dot(S[i], q))
+        q -= alpha[i] * Y[i]
+    r = q * (float(np.dot(S[-1], Y[-1])) / float(np.dot(Y[-1], Y[-1])))
+    for i in range(len(S)):
+        beta = rho[i] * float(np.dot(Y[i], r))
+        r += (alpha[i] - beta) * S[i]
+    return -r
+
+
+class _Trial:
+    """One line-search trial a: loss phi(a), and where known the gradient and phi'(a) = g.p."""
+
+    def __init__(self, a, phi, g=None, p=None):
+        self.a, self.phi, self.g = a, phi, g
+        self.dphi = None if g is None else float(np.dot(g, p))
+
+
+def line_search(loss, grad, x, f, g, p, a0):
+    """A step a along p with the strong Wolfe conditions (Alg 3.5; zoom: Alg 3.6), as (a, f_new, g_new).
+
+    Returns None when MAX_TRIALS evaluations find no step with sufficient decrease. When they find one but not
+    the curvature condition, the best such step is returned (its pair is then kept only if s.y > 0 enough).
+    """
+    dphi0 = float(np.dot(g, p))
+    evals = [0]
+
+    def trial(a):
+        evals[0] += 1
+        phi = loss(x + a * p)
+        return a, (phi if math.isfinite(phi) else math.inf)
+
+    def sufficient(a, phi):
+        return phi <= f + C1 * a * dphi0
+
+    def with_grad(a, phi):
+        return _Trial(a, phi, np.asarray(grad(), dtype=np.float64).ravel(), p)
+
+    def curvature(t):
+        return abs(t.dphi) <= -C2 * dphi0
+
+    def zoom(lo, hi):
+        """lo satisfies sufficient decrease and has the lower loss; the interval between lo and hi holds a
+        strong Wolfe step (Alg 3.6)."""
+        while evals[0] < MAX_TRIALS:
+            a, phi = trial(_interpolate(lo, hi))
+            if not sufficient(a, phi) or phi >= lo.phi:
+                hi = _Trial(a, phi)
+                continue
+            t = with_grad(a, phi)
+            if curvature(t):
+                return t
+            if t.dphi * (hi.a - lo.a) >= 0:
+                hi = lo
+            lo = t
+        return lo if lo.a > 0 else None
+
+    prev = _Trial(0.0, f, g, p)
+    a = a0
+    while evals[0] < MAX_TRIALS:
+        a, phi = trial(a)
+        if not sufficient(a, phi) or (prev.a > 0 and phi >= prev.phi):
+            best = zoom(prev, _Trial(a, phi))
+            break
+        t = with_grad(a, phi)
+        if curvature(t):
+            best = t
+            break
+        if t.dphi >= 0:
+            best = zoom(t, prev)
+            break
+        prev, a = t, GROW * a
+    else:
+        best = prev if prev.a > 0 else None
+    if best is None:
+        return None
+    return best.a, best.phi, best.g
+
+
+def _interpolate(lo, hi):
+    """The next zoom trial between lo.a and hi.a: the minimiser of the cubic through both ends' values and
+    slopes (eq 3.59), else of the quadratic through lo's value and slope and hi's value, else the midpoint; an
+    interpolated trial closer than SAFEGUARD of the interval to an end is replaced by the midpoint."""
+    d = hi.a - lo.a
+    a = None
+    if math.isfinite(hi.phi):
+        if hi.dphi is not None:
+            d1 = lo.dphi + hi.dphi - 3.0 * (lo.phi - hi.phi) / (lo.a - hi.a)
+            disc = d1 * d1 - lo.dphi * hi.dphi
+            if disc >= 0.0:
+                d2 = math.copysign(math.sqrt(disc), d)
+                den = hi.dphi - lo.dphi + 2.0 * d2
+                if den != 0.0:
+                    a = hi.a - d * (hi.dphi + d2 - d1) / den
+        if a is None:
+            den = 2.0 * (hi.phi - lo.phi - lo.dphi * d)
+            if den > 0.0:  # the quadratic is convex: it has a minimum
+                a = lo.a - lo.dphi * d * d / den
+    inner_lo, inner_hi = sorted((lo.a + SAFEGUARD * d, hi.a - SAFEGUARD * d))
+    if a is None or not math.isfinite(a) or not inner_lo <= a <= inner_hi:
+        a = lo.a + 0.5 * d
+    return a
+
+
+def iterate(loss, grad, x, f, g, S, Y):
+    """One L-BFGS iteration from (x, f, g) with pairs S, Y (lists of vectors, oldest first, at most MEMORY).
+
+    The direction is -H g (Alg 7.4); where it is no descent direction (g.p >= 0), or where no pair is kept,
+    steepest descent -g with a first trial step of length 1 (scipy's L-BFGS-B does this on its first
+    iteration), else a first trial a = 1 (N&W 7.2). A line search that fails along -H g is tried once more
+    along -g with the memory cleared. Returns (x, f, g, S, Y) of the next iterate, or None when the line
+    search finds no decrease along -g either, or at once when g = 0 (x is stationary).
+    """
+    if not np.any(g):
+        return None
+    S, Y = list(S), list(Y)
+    p = direction(g, S, Y) if S else None
+    if p is None or not float(np.dot(g, p)) < 0.0:
+        S, Y, p = [], [], -np.asarray(g, dtype=np.float64)
+    while True:
+        a0 = 1.0 if S else 1.0 / float(np.linalg.norm(p))
+        found = line_search(loss, grad, x, f, g, p, a0)
+        if found is not None:
+            break
+        if not S:
+            return None
+        S, Y, p = [], [], -np.asarray(g, dtype=np.float64)
+    a, f_new, g_new = found
+    x_new = x + a * p
+    s, y = x_new - x, g_new - g
+    if float(np.dot(s, y)) > CURVATURE_EPS * float(np.linalg.norm(s)) * float(np.linalg.norm(y)):
+        S.append(s)
+        Y.append(y)
+        del S[:-MEMORY], Y[:-MEMORY]
+    return x_new, f_new, g_new, S, Y
