@@ -7,8 +7,8 @@ the next with no other memory, so an optimizer that saves that state after every
 from it continues exactly as if it had not stopped.
 
 The loss is given as two callables: loss(x) -> float (math.inf where the trial cannot be evaluated, e.g. the
-simulation left the grid) and grad() -> the gradient at the x of the last loss call. Gradients are asked for
-only at trials that pass the sufficient-decrease test, which saves a reverse pass per rejected trial.
+simulation left the grid) and grad() -> the gradient at the x of the last loss call, asked for at every trial
+with a finite loss.
 """
 import math
 
@@ -20,7 +20,6 @@ C2 = 0.9  # curvature: |g(x + a p).p| <= C2 |g.p| (N&W 3.7b; 0.9 for quasi-Newto
 MAX_TRIALS = 20  # loss evaluations per line search (scipy's maxls)
 GROW = 2.0  # the bracketing phase multiplies the trial step by this while it is too short
 CURVATURE_EPS = 1e-10  # a pair is kept only if s.y > CURVATURE_EPS |s| |y|, which keeps H positive definite
-SAFEGUARD = 0.1  # an interpolated zoom trial keeps this fraction of the interval away from either end
 
 
 def direction(g, S, Y):
@@ -59,15 +58,15 @@ def line_search(loss, grad, x, f, g, p, a0):
     evals = [0]
 
     def trial(a):
+        """The loss at x + a p, with its gradient where it is finite (the zoom interpolates with both)."""
         evals[0] += 1
         phi = loss(x + a * p)
-        return a, (phi if math.isfinite(phi) else math.inf)
+        if not math.isfinite(phi):
+            return _Trial(a, math.inf)
+        return _Trial(a, phi, np.asarray(grad(), dtype=np.float64).ravel(), p)
 
     def sufficient(a, phi):
         return phi <= f + C1 * a * dphi0
-
-    def with_grad(a, phi):
-        return _Trial(a, phi, np.asarray(grad(), dtype=np.float64).ravel(), p)
 
     def curvature(t):
         return abs(t.dphi) <= -C2 * dphi0
@@ -76,11 +75,10 @@ def line_search(loss, grad, x, f, g, p, a0):
         """lo satisfies sufficient decrease and has the lower loss; the interval between lo and hi holds a
         strong Wolfe step (Alg 3.6)."""
         while evals[0] < MAX_TRIALS:
-            a, phi = trial(_interpolate(lo, hi))
-            if not sufficient(a, phi) or phi >= lo.phi:
-                hi = _Trial(a, phi)
+            t = trial(_interpolate(lo, hi))
+            if not sufficient(t.a, t.phi) or t.phi >= lo.phi:
+                hi = t
                 continue
-            t = with_grad(a, phi)
             if curvature(t):
                 return t
             if t.dphi * (hi.a - lo.a) >= 0:
@@ -91,11 +89,10 @@ def line_search(loss, grad, x, f, g, p, a0):
     prev = _Trial(0.0, f, g, p)
     a = a0
     while evals[0] < MAX_TRIALS:
-        a, phi = trial(a)
-        if not sufficient(a, phi) or (prev.a > 0 and phi >= prev.phi):
-            best = zoom(prev, _Trial(a, phi))
+        t = trial(a)
+        if not sufficient(t.a, t.phi) or (prev.a > 0 and t.phi >= prev.phi):
+            best = zoom(prev, t)
             break
-        t = with_grad(a, phi)
         if curvature(t):
             best = t
             break
@@ -111,26 +108,35 @@ def line_search(loss, grad, x, f, g, p, a0):
 
 
 def _interpolate(lo, hi):
-    """The next zoom trial between lo.a and hi.a: the minimiser of the cubic through both ends' values and
-    slopes (eq 3.59), else of the quadratic through lo's value and slope and hi's value, else the midpoint; an
-    interpolated trial closer than SAFEGUARD of the interval to an end is replaced by the midpoint."""
+    """The next zoom trial between lo.a and hi.a (lo: the lower loss). With both ends' values and slopes: where
+    hi's loss is higher, the cubic minimiser or, when it lies farther from lo, halfway from it towards the
+    quadratic one (More & Thuente 1994, case 1; scipy's L-BFGS-B line search does the same); else the minimiser
+    of the cubic through both ends (eq 3.59). Without hi's slope (an infinite loss has none): the quadratic
+    through lo's value and slope and hi's value, else the midpoint. A trial outside the interval, or not
+    finite, is replaced by the midpoint."""
     d = hi.a - lo.a
     a = None
-    if math.isfinite(hi.phi):
-        if hi.dphi is not None:
-            d1 = lo.dphi + hi.dphi - 3.0 * (lo.phi - hi.phi) / (lo.a - hi.a)
-            disc = d1 * d1 - lo.dphi * hi.dphi
-            if disc >= 0.0:
-                d2 = math.copysign(math.sqrt(disc), d)
-                den = hi.dphi - lo.dphi + 2.0 * d2
-                if den != 0.0:
-                    a = hi.a - d * (hi.dphi + d2 - d1) / den
-        if a is None:
-            den = 2.0 * (hi.phi - lo.phi - lo.dphi * d)
-            if den > 0.0:  # the quadratic is convex: it has a minimum
-                a = lo.a - lo.dphi * d * d / den
-    inner_lo, inner_hi = sorted((lo.a + SAFEGUARD * d, hi.a - SAFEGUARD * d))
-    if a is None or not math.isfinite(a) or not inner_lo <= a <= inner_hi:
+    if math.isfinite(hi.phi) and hi.dphi is not None:
+        theta = 3.0 * (lo.phi - hi.phi) / (hi.a - lo.a) + lo.dphi + hi.dphi
+        scale = max(abs(theta), abs(lo.dphi), abs(hi.dphi))
+        disc = (theta / scale) ** 2 - (lo.dphi / scale) * (hi.dphi / scale)
+        if disc >= 0.0:
+            gamma = math.copysign(scale * math.sqrt(disc), d)
+            den = (gamma - lo.dphi) + gamma + hi.dphi
+            if den != 0.0:
+                a = lo.a + ((gamma - lo.dphi) + theta) / den * d  # the cubic's minimiser
+        if hi.phi > lo.phi and a is not None:
+            den = (lo.phi - hi.phi) / (hi.a - lo.a) + lo.dphi
+            if den != 0.0:
+                quad = lo.a + (lo.dphi / den) / 2.0 * d
+                if abs(a - lo.a) >= abs(quad - lo.a):
+                    a += (quad - a) / 2.0
+    elif math.isfinite(hi.phi):
+        den = 2.0 * (hi.phi - lo.phi - lo.dphi * d)
+        if den > 0.0:  # the quadratic is convex: it has a minimum
+            a = lo.a - lo.dphi * d * d / den
+    inner_lo, inner_hi = sorted((lo.a, hi.a))
+    if a is None or not math.isfinite(a) or not inner_lo < a < inner_hi:
         a = lo.a + 0.5 * d
     return a
 

@@ -228,6 +228,16 @@ def test_resume_when_every_round_is_done(runs, tmp_path, monkeypatch):
     assert_same_run(tmp_path, whole)
 
 
+def test_zero_iterations_give_the_initial_controls(tmp_path):
+    """optimize.iterations = 0 (lbfgs raised IndexError and left a checkpoint): the result holds the initial
+    controls and loss, stopped by the iteration budget."""
+    summary = run(scene_of("optimize.method=lbfgs", "optimize.iterations=0"), tmp_path, render=False)
+    _, arrays = result(tmp_path)
+    assert summary["iterations"] == 0 and summary["stop_reason"] == ["iteration budget"]
+    assert summary["loss_final"] == summary["loss_initial"] and arrays["losses"].tolist() == [summary["loss_initial"]]
+    assert not np.any(arrays["controls"]) and not (tmp_path / "checkpoint.npz").exists()
+
+
 def test_resume_allows_a_larger_iteration_budget(runs, tmp_path):
     """The iteration budget is not part of the checkpoint's fingerprint: a run stopped in iteration 1 of 2 and
     resumed with a budget of 3 ends where a 3-iteration run ends."""
