@@ -19,6 +19,8 @@ C1 = 1e-4  # sufficient decrease: f(x + a p) <= f + C1 a g.p (N&W 3.6a)
 C2 = 0.9  # curvature: |g(x + a p).p| <= C2 |g.p| (N&W 3.7b; 0.9 for quasi-Newton directions)
 MAX_TRIALS = 20  # loss evaluations per line search (scipy's maxls)
 GROW = 2.0  # the bracketing phase multiplies the trial step by this while it is too short
+XTOL = 0.1  # a zoom interval narrower than this fraction of its larger step ends the search (scipy's xtol)
+SHRINK = 0.66  # a zoom interval must shrink below this fraction of its width two trials before, or is bisected
 CURVATURE_EPS = 1e-10  # a pair is kept only if s.y > CURVATURE_EPS |s| |y|, which keeps H positive definite
 
 
@@ -71,11 +73,23 @@ def line_search(loss, grad, x, f, g, p, a0):
     def curvature(t):
         return abs(t.dphi) <= -C2 * dphi0
 
-    def zoom(lo, hi):
+    def zoom(before, t, lo, hi):
         """lo satisfies sufficient decrease and has the lower loss; the interval between lo and hi holds a
-        strong Wolfe step (Alg 3.6)."""
+        strong Wolfe step (Alg 3.6). `t` is the trial that made this interval, `before` the best step before it.
+        The interval ends the search, with lo, once it is narrower than XTOL of the larger step (lo is as good
+        as any step in it); one that has not shrunk below SHRINK of its width two trials before is bisected
+        (More & Thuente's safeguards: interpolation can creep towards one end)."""
+        width = abs(hi.a - lo.a)
+        width_before = 2.0 * width
         while evals[0] < MAX_TRIALS:
-            t = trial(_interpolate(lo, hi))
+            if abs(hi.a - lo.a) <= XTOL * max(lo.a, hi.a):
+                break
+            a = _next_step(before, t, lo, hi)
+            if abs(hi.a - lo.a) >= SHRINK * width_before:
+                a = lo.a + 0.5 * (hi.a - lo.a)
+            width_before, width = width, abs(hi.a - lo.a)
+            t = trial(a)
+            before = lo
             if not sufficient(t.a, t.phi) or t.phi >= lo.phi:
                 hi = t
                 continue
@@ -91,13 +105,13 @@ def line_search(loss, grad, x, f, g, p, a0):
     while evals[0] < MAX_TRIALS:
         t = trial(a)
         if not sufficient(t.a, t.phi) or (prev.a > 0 and t.phi >= prev.phi):
-            best = zoom(prev, t)
+            best = zoom(prev, t, prev, t)
             break
         if curvature(t):
             best = t
             break
         if t.dphi >= 0:
-            best = zoom(t, prev)
+            best = zoom(prev, t, t, prev)
             break
         prev, a = t, GROW * a
     else:
@@ -107,37 +121,59 @@ def line_search(loss, grad, x, f, g, p, a0):
     return best.a, best.phi, best.g
 
 
-def _interpolate(lo, hi):
-    """The next zoom trial between lo.a and hi.a (lo: the lower loss). With both ends' values and slopes: where
-    hi's loss is higher, the cubic minimiser or, when it lies farther from lo, halfway from it towards the
-    quadratic one (More & Thuente 1994, case 1; scipy's L-BFGS-B line search does the same); else the minimiser
-    of the cubic through both ends (eq 3.59). Without hi's slope (an infinite loss has none): the quadratic
-    through lo's value and slope and hi's value, else the midpoint. A trial outside the interval, or not
-    finite, is replaced by the midpoint."""
-    d = hi.a - lo.a
+def _cubic_min(x, y):
+    """The minimiser of the cubic through the values and slopes of trials x and y (eq 3.59, in the scaled form
+    of More & Thuente that avoids overflow), or None where it has none."""
+    theta = 3.0 * (x.phi - y.phi) / (y.a - x.a) + x.dphi + y.dphi
+    scale = max(abs(theta), abs(x.dphi), abs(y.dphi))
+    if scale == 0.0:
+        return None
+    disc = (theta / scale) ** 2 - (x.dphi / scale) * (y.dphi / scale)
+    if disc < 0.0:
+        return None
+    gamma = math.copysign(scale * math.sqrt(disc), y.a - x.a)
+    den = (gamma - x.dphi) + gamma + y.dphi
+    if den == 0.0:
+        return None
+    return x.a + ((gamma - x.dphi) + theta) / den * (y.a - x.a)
+
+
+def _next_step(before, t, lo, hi):
+    """The next zoom trial in (lo, hi), chosen as More & Thuente (1994) choose it (scipy's L-BFGS-B line search
+    does too) from the last trial t and the best step `before` it: where t's loss is higher (case 1), the cubic
+    minimiser, or halfway from it to the quadratic one when that lies nearer `before`; where t is lower and the
+    slopes differ in sign (case 2), the cubic or the secant step, whichever is farther from t; where t is lower
+    with a smaller slope of the same sign (case 3), the nearer of the two, at most SHRINK of the way to the far
+    end; else (case 4) the cubic minimiser of t and the far end. Where slopes are missing (an infinite loss) or
+    the step falls outside (lo, hi), the midpoint."""
     a = None
-    if math.isfinite(hi.phi) and hi.dphi is not None:
-        theta = 3.0 * (lo.phi - hi.phi) / (hi.a - lo.a) + lo.dphi + hi.dphi
-        scale = max(abs(theta), abs(lo.dphi), abs(hi.dphi))
-        disc = (theta / scale) ** 2 - (lo.dphi / scale) * (hi.dphi / scale)
-        if disc >= 0.0:
-            gamma = math.copysign(scale * math.sqrt(disc), d)
-            den = (gamma - lo.dphi) + gamma + hi.dphi
-            if den != 0.0:
-                a = lo.a + ((gamma - lo.dphi) + theta) / den * d  # the cubic's minimiser
-        if hi.phi > lo.phi and a is not None:
-            den = (lo.phi - hi.phi) / (hi.a - lo.a) + lo.dphi
-            if den != 0.0:
-                quad = lo.a + (lo.dphi / den) / 2.0 * d
-                if abs(a - lo.a) >= abs(quad - lo.a):
+    far = hi if t is lo else lo
+    if t.dphi is not None and before.dphi is not None and t.a != before.a:
+        d = t.a - before.a
+        if t.phi > before.phi:  # case 1
+            a = _cubic_min(before, t)
+            den = (before.phi - t.phi) / d + before.dphi
+            if a is not None and den != 0.0:
+                quad = before.a + (before.dphi / den) / 2.0 * d
+                if abs(a - before.a) >= abs(quad - before.a):
                     a += (quad - a) / 2.0
-    elif math.isfinite(hi.phi):
-        den = 2.0 * (hi.phi - lo.phi - lo.dphi * d)
-        if den > 0.0:  # the quadratic is convex: it has a minimum
-            a = lo.a - lo.dphi * d * d / den
+        elif t.dphi * math.copysign(1.0, before.dphi) < 0:  # case 2
+            a = _cubic_min(before, t)
+            secant = t.a + t.dphi / (t.dphi - before.dphi) * (before.a - t.a)
+            if a is None or abs(a - t.a) <= abs(secant - t.a):
+                a = secant
+        elif abs(t.dphi) < abs(before.dphi):  # case 3
+            secant = t.a + t.dphi / (t.dphi - before.dphi) * (before.a - t.a)
+            a = _cubic_min(before, t)
+            if a is None or (a - t.a) * (before.a - t.a) > 0 or abs(a - t.a) >= abs(secant - t.a):
+                a = secant  # (a cubic minimum on before's side of t is no extrapolation)
+            limit = t.a + SHRINK * (far.a - t.a)
+            a = min(a, limit) if far.a > t.a else max(a, limit)
+        elif far.dphi is not None and math.isfinite(far.phi) and far.a != t.a:  # case 4
+            a = _cubic_min(t, far)
     inner_lo, inner_hi = sorted((lo.a, hi.a))
     if a is None or not math.isfinite(a) or not inner_lo < a < inner_hi:
-        a = lo.a + 0.5 * d
+        a = lo.a + 0.5 * (hi.a - lo.a)
     return a
 
 
