@@ -126,7 +126,7 @@ def _cubic_min(x, y):
     of More & Thuente that avoids overflow), or None where it has none."""
     theta = 3.0 * (x.phi - y.phi) / (y.a - x.a) + x.dphi + y.dphi
     scale = max(abs(theta), abs(x.dphi), abs(y.dphi))
-    if scale == 0.0:
+    if not 0.0 < scale < math.inf:  # flat, or values too far apart to interpolate
         return None
     disc = (theta / scale) ** 2 - (x.dphi / scale) * (y.dphi / scale)
     if disc < 0.0:

@@ -162,3 +162,17 @@ def test_non_descent_direction_restarts_from_steepest_descent():
     step = x_new - x
     assert f_new < f and np.allclose(step / np.linalg.norm(step), -g / np.linalg.norm(g), atol=1e-12)
     assert len(S_new) == 1 and np.array_equal(S_new[0], step)
+
+
+def test_a_line_search_without_a_curvature_step_in_reach_ends_early():
+    """phi(a) = -a + exp(1e6 (a - 1)) meets the curvature condition only where a is within ~1e-5 of 0.99999:
+    the zoom stops once its interval is narrower than XTOL of the step, with the best sufficient-decrease step,
+    instead of spending all MAX_TRIALS evaluations (a shipped scene lost iou that way)."""
+    fun = Function(lambda x: -x[0] + math.exp(min(1e6 * (x[0] - 1.0), 700.0)),
+                   lambda x: np.array([-1.0 + 1e6 * math.exp(min(1e6 * (x[0] - 1.0), 700.0))]))
+    x = np.zeros(1)
+    f, g = fun.loss(x), fun.grad()
+    fun.losses = 0
+    a, f_new, _ = line_search(fun.loss, fun.grad, x, f, g, np.ones(1), 3.0)
+    assert fun.losses < lbfgs.MAX_TRIALS // 2, fun.losses
+    assert 0.9 < a < 1.0 and f_new <= f + C1 * a * float(g[0])
