@@ -9,11 +9,9 @@ the few real runs share one Taichi runtime per run as tests/test_run.py does.
 """
 import errno
 import os
-import shutil
 import subprocess
 import sys
 import textwrap
-import time
 from pathlib import Path
 
 import numpy as np
@@ -23,7 +21,7 @@ import taichi as ti
 import mls_mpm.render_run
 from mls_mpm import SimConfig, problem, runtime
 from mls_mpm import run as run_module
-from mls_mpm.checkpoint import CheckpointError, OutputError, load_npz, save_npz
+from mls_mpm.checkpoint import CheckpointError, load_npz, save_npz
 from mls_mpm.cli import main
 from mls_mpm.errors import Interrupted
 from mls_mpm.lock import FolderBusyError, folder_lock
