@@ -199,7 +199,7 @@ def test_gd_with_restarts_matches_gd_with_full_resimulation(sim, scene):
 # Interrupt and resume: should_stop() turns true at its n-th call; the optimizer checkpoints and returns; a second
 # call with resume=<that checkpoint> (on a simulator whose stored steps were overwritten meanwhile) must end exactly
 # where an uninterrupted run ends. gd calls should_stop after every control step (K = 4 per temporal iteration)
-# and once more after each temporal iteration; adam and positions after every step.
+# and once more after each temporal iteration; adam and positions after every step, lbfgs after every iteration.
 
 class StopAt:
     def __init__(self, n):
