@@ -1,9 +1,18 @@
 """Control optimization: Algorithm 1 (gd with line search), adam, lbfgs (thesis 9.1), positions (thesis 8.1).
 
 Every optimizer takes a Simulator whose initial state is set, starting controls and a settings object, and
-returns an OptimizeResult. It calls `on_checkpoint(state)` after each unit of work (a control step of gd, an
-adam or lbfgs step) with a dict from which `resume=` continues exactly, and stops early, after such a
-checkpoint, when `should_stop()` turns true (an interrupt).
+returns an OptimizeResult. It calls `on_checkpoint(state)` with a dict from which `resume=` continues bit for bit
+like an uninterrupted run (on one machine, with a deterministic schedule), and stops early, right after such a
+checkpoint, when `should_stop()` turns true (an interrupt). The checkpoints, which are also the points a resume
+restarts from:
+  gd         after every control step (control k of a temporal iteration done: the state says k + 1), and after
+             each temporal iteration's bookkeeping (k = 0 of the next, and whether it converged)
+  adam       after every step (controls, both moments)
+  lbfgs      after every iteration (iterate, loss, gradient, the curvature pairs in order)
+  positions  after every step (the particle positions)
+A state records why its optimizer stopped (`stop_reason`, where that is decided after the checkpoint's data), so
+a run resumed from its last checkpoint stops where it stopped. `iterations = 0` returns the starting controls and
+their loss.
 """
 import math
 import time
@@ -12,8 +21,24 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errors import SimulationError
+from .lbfgs import MEMORY, iterate
 
 ARMIJO = 1e-4  # sufficient decrease: L_new <= L - ARMIJO * step * |g| (normalised) or step * |g|^2 (raw)
+
+
+# What each optimizer's checkpoint state holds besides "controls" (K, N, 2, 2) and "loss" (a number), by kind:
+# int, float, bool, str, floats (a list of numbers), per_control (a list of K numbers), like_controls (an array
+# shaped like the controls), particles (an (N, 2) array), pairs (an (h, K N 4) array with h <= lbfgs.MEMORY).
+# run.py checks a checkpoint against it before resuming.
+_COMMON = {"iteration": "int", "losses": "floats", "grad_norms": "floats"}
+STATE = {
+    "gd": {**_COMMON, "k": "int", "g_first": "float", "improved": "bool", "small": "bool", "steps": "per_control",
+           "stop_reason": "str", "converged": "bool"},
+    "adam": {**_COMMON, "m": "like_controls", "v": "like_controls", "g_first": "float"},
+    "lbfgs": {**_COMMON, "g": "like_controls", "S": "pairs", "Y": "pairs", "stop_reason": "str", "converged": "bool"},
+    "positions": {**_COMMON, "x": "particles"},
+}
+PAIRS_MAX = MEMORY
 
 
 @dataclass
@@ -64,15 +89,13 @@ def gd(sim, controls, settings, on_checkpoint=None, should_stop=None, emit=print
     cfg = sim.cfg
     K, s = cfg.n_controls, cfg.stride
     c, st = _start(controls, resume, {"iteration": 0, "k": 0, "losses": [], "grad_norms": [], "g_first": 0.0,
-                                      "improved": False, "small": True, "steps": [settings.lr] * K})
-    st.setdefault("small", True)
-    L = sim.forward(c)
+                                      "improved": False, "small": True, "steps": [settings.lr] * K,
+                                      "stop_reason": "", "converged": False})
+    L = sim.forward(c)  # resumed: also the stored steps that the restarts from step k * s reuse
     if not st["losses"]:
         st["losses"].append(L)
     progress = Progress(settings.iterations, emit, "temporal iteration")
-    reason = "iteration budget"
-    converged = False
-    while st["iteration"] < settings.iterations:
+    while st["iteration"] < settings.iterations and not st["stop_reason"]:
         while st["k"] < K:
             k = st["k"]
             start = k * s
@@ -105,25 +128,24 @@ def gd(sim, controls, settings, on_checkpoint=None, should_stop=None, emit=print
                     L = sim.forward(c, start=start)  # restore the stored states of the current controls
             st["grad_norms"].append(gn)
             st["k"] = k + 1
+            _checkpoint(on_checkpoint, st, c, L)
             if should_stop and should_stop():
-                _checkpoint(on_checkpoint, st, c, L)
                 return OptimizeResult(c, st["losses"] + [L], st["iteration"], False, "interrupted",
                                       st["grad_norms"])
         st["losses"].append(L)
         st["iteration"] += 1
         progress.update(st["iteration"], L, max(st["grad_norms"][-K:]), st["losses"][0])
-        improved, small = st["improved"], st["small"]
+        if st["small"]:
+            st["stop_reason"] = "gradient norm below tolerance"
+        elif not st["improved"]:
+            st["stop_reason"] = "no sufficient decrease in a whole temporal iteration"
+        st["converged"] = bool(st["stop_reason"])
         st["k"], st["improved"], st["small"] = 0, False, True
         _checkpoint(on_checkpoint, st, c, L)
-        if small:
-            converged, reason = True, "gradient norm below tolerance"
-            break
-        if not improved:
-            converged, reason = True, "no sufficient decrease in a whole temporal iteration"
-            break
-        if should_stop and should_stop():
+        if not st["stop_reason"] and should_stop and should_stop():
             return OptimizeResult(c, st["losses"], st["iteration"], False, "interrupted", st["grad_norms"])
-    return OptimizeResult(c, st["losses"], st["iteration"], converged, reason, st["grad_norms"])
+    return OptimizeResult(c, st["losses"], st["iteration"], st["converged"], st["stop_reason"] or "iteration budget",
+                          st["grad_norms"])
 
 
 def adam(sim, controls, settings, on_checkpoint=None, should_stop=None, emit=print, resume=None):
@@ -161,51 +183,63 @@ def adam(sim, controls, settings, on_checkpoint=None, should_stop=None, emit=pri
     return OptimizeResult(c, st["losses"], st["iteration"], False, "iteration budget", st["grad_norms"])
 
 
-class _Interrupted(Exception):
-    pass
-
-
 def lbfgs(sim, controls, settings, on_checkpoint=None, should_stop=None, emit=print, resume=None):
-    """L-BFGS-B from scipy.optimize on all controls at once (thesis 9.1). settings: iterations, tol.
+    """L-BFGS on all controls at once (thesis 9.1; mls_mpm/lbfgs.py: memory lbfgs.MEMORY = 10 pairs, initial
+    Hessian (s.y / y.y) I, strong Wolfe line search with c1 = 1e-4, c2 = 0.9). settings: iterations (L-BFGS
+    iterations), tol: stop when an iteration lowers the loss by less than tol * 1e-3 times the loss before it;
+    also stops at a zero gradient or when the line search finds no decrease. A trial that leaves the grid
+    counts as an infinite loss (the line search shortens the step).
 
-    A resumed run restarts L-BFGS's curvature memory from the checkpointed controls.
+    The checkpoint after every iteration holds the iterate, its loss and gradient and the curvature pairs in
+    order, so a resumed run continues bit for bit like an uninterrupted one.
     """
-    from scipy.optimize import minimize
+    c, st = _start(controls, resume, {"iteration": 0, "losses": [], "grad_norms": [], "stop_reason": "",
+                                      "converged": False})
+    shape = c.shape
 
-    c0, st = _start(controls, resume, {"iteration": 0, "losses": [], "grad_norms": []})
-    shape = c0.shape
+    def loss(flat):
+        try:
+            return sim.forward(flat.reshape(shape))
+        except SimulationError:  # the trial threw particles off the grid: too long a step
+            return math.inf
+
+    def grad():
+        return _clip(sim.backward(), settings.clip).ravel()
+
+    if resume is None:
+        L = sim.forward(c)
+        g, S, Y = grad(), [], []
+        st["losses"].append(L)
+    else:
+        L = float(resume["loss"])
+        g = np.array(st.pop("g"), dtype=np.float64).ravel()
+        S, Y = (list(np.array(st.pop(k), dtype=np.float64)) for k in ("S", "Y"))
+    x = c.ravel()
     progress = Progress(settings.iterations, emit, "lbfgs step")
-    last = {}
-
-    def fun(flat):
-        L = sim.forward(flat.reshape(shape))
-        g = _clip(sim.backward(), settings.clip)
-        last.update(L=L, gn=float(np.linalg.norm(g)))
-        if not st["losses"]:
-            st["losses"].append(L)
-        return L, g.ravel()
-
-    def callback(xk):
+    while st["iteration"] < settings.iterations and not st["stop_reason"]:
+        if not np.any(g):
+            st["stop_reason"], st["converged"] = "zero gradient", True
+            break
+        step = iterate(loss, grad, x, L, g, S, Y)
+        if step is None:
+            st["stop_reason"] = "the line search found no decrease, not even along -g"
+            break
+        x, L_new, g, S, Y = step
+        decrease, L = L - L_new, L_new
         st["iteration"] += 1
-        st["losses"].append(last["L"])
-        st["grad_norms"].append(last["gn"])
-        progress.update(st["iteration"], last["L"], last["gn"], st["losses"][0])
-        _checkpoint(on_checkpoint, st, xk.reshape(shape), last["L"])
-        if should_stop and should_stop():
-            raise _Interrupted(xk.copy())
-
-    left = settings.iterations - st["iteration"]
-    if left <= 0:
-        return OptimizeResult(c0, st["losses"], st["iteration"], False, "iteration budget", st["grad_norms"])
-    try:
-        res = minimize(fun, c0.ravel(), jac=True, method="L-BFGS-B", callback=callback,
-                       options={"maxiter": left, "gtol": 0.0, "ftol": settings.tol * 1e-3})
-    except _Interrupted as stop:
-        return OptimizeResult(stop.args[0].reshape(shape), st["losses"], st["iteration"], False, "interrupted",
-                              st["grad_norms"])
-    converged = res.status == 0 and st["iteration"] < settings.iterations
-    return OptimizeResult(res.x.reshape(shape), st["losses"], st["iteration"], converged, str(res.message),
-                          st["grad_norms"])
+        st["losses"].append(L)
+        st["grad_norms"].append(float(np.linalg.norm(g)))
+        progress.update(st["iteration"], L, st["grad_norms"][-1], st["losses"][0])
+        if decrease < settings.tol * 1e-3 * abs(st["losses"][-2]):
+            st["stop_reason"], st["converged"] = "relative loss decrease below tol * 1e-3", True
+        n = len(x)
+        _checkpoint(on_checkpoint, {**st, "g": g.reshape(shape), "S": np.reshape(S, (len(S), n)),
+                                    "Y": np.reshape(Y, (len(Y), n))}, x.reshape(shape), L)
+        if not st["stop_reason"] and should_stop and should_stop():
+            return OptimizeResult(x.reshape(shape), st["losses"], st["iteration"], False, "interrupted",
+                                  st["grad_norms"])
+    return OptimizeResult(x.reshape(shape), st["losses"], st["iteration"], st["converged"],
+                          st["stop_reason"] or "iteration budget", st["grad_norms"])
 
 
 def positions(sim, controls, settings, on_checkpoint=None, should_stop=None, emit=print, resume=None):

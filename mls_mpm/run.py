@@ -1,27 +1,41 @@
 """`mls-mpm run`: a scene in, an optimized animation out (thesis Algorithm 1, 7.4), resumable at any point.
 
-Files in the output folder, all written atomically:
-  checkpoint.npz  optimizer progress after every unit of work (deleted when the run completes)
+Files in the output folder, all written atomically (mode 0666 minus the umask):
+  checkpoint.npz  optimizer progress (deleted when the run completes)
   result.npz      controls of every round, initial states, final state, losses (what `render` needs)
   summary.json    scene, loss_initial, loss_final, iou, mass_outside_target, iterations, converged, ...
   frames/, animation.gif, sheet.png, loss.png   (see render_run)
+  .lock           held by the running job (mls_mpm/lock.py), removed when it ends
+
+checkpoint.npz is rewritten at every checkpoint of the optimizer (see mls_mpm/optimize.py: after every control
+step of gd, every step of adam and positions, every iteration of lbfgs) and after every finished round; it holds
+the finished rounds, the initial state of the next one and the optimizer state of the current one. `--resume`
+restarts from the last one written, and ends bit for bit where an uninterrupted run ends. When it records every
+round as done (the run was killed while writing its result), the resume only re-simulates the last round and
+writes the result. A run never overwrites a folder another job holds, and a finished run removes the renders an
+earlier run left there, so a folder never mixes two runs.
 """
 import json
+import shutil
 import time
 from pathlib import Path
 
 import numpy as np
 
 from . import problem as problems, runtime
-from .checkpoint import CheckpointError, load_npz, save_json, save_npz, split_state
+from .checkpoint import (TEMP_GLOB, CheckpointError, OutputError, check_array, check_value, load_npz, save_json,
+                         save_npz, split_state)
+from .errors import Interrupted
 from .images import splat_grid
-from .optimize import METHODS
-from .result import STATE_KEYS
+from .lock import folder_lock
+from .optimize import METHODS, PAIRS_MAX, STATE, OptimizeResult
+from .result import STATE_KEYS, STATE_SHAPES
 from .simulator import Simulator
-from .errors import UserError
 
-class OutputError(UserError):
-    """The output folder cannot be used."""
+__all__ = ["OutputError", "prepare_out", "fingerprint", "run_scene"]
+
+RENDER_OUTPUTS = ("frames", "animation.gif", "sheet.png", "loss.png", "animation.mp4")  # what render_run makes
+MISMATCHES_SHOWN = 3  # settings named in a resume refusal before "and N more"
 
 
 def prepare_out(out_dir):
@@ -55,23 +69,34 @@ def run_scene(scene, out_dir, resume=False, emit=print, should_stop=None, render
     """Optimize a scene's controls (all rounds), write result.npz, summary.json and the renders.
 
     Returns the summary dict; summary["interrupted"] is true when should_stop() ended the run early, in
-    which case checkpoint.npz holds everything needed to continue with resume=True.
+    which case checkpoint.npz holds everything needed to continue with resume=True (or, with
+    summary["render_interrupted"], the result is complete and only its rendering was stopped).
     """
     t0 = time.perf_counter()
     prob = problems.build(scene)
-    cfg, opt = scene.sim, scene.optimize
-    sim = Simulator(cfg, prob.x0, loss=prob.loss)  # refuses a missing backend or too little memory: nothing written
+    ckpt = Path(out_dir) / "checkpoint.npz"
+    if resume and not ckpt.is_file():  # before anything is created
+        raise CheckpointError(f"{ckpt}: no such file; expected the checkpoint of an interrupted run (drop --resume "
+                              "to start over)")
+    sim = Simulator(scene.sim, prob.x0, loss=prob.loss)  # refuses a missing backend or too little memory: nothing written
     out = prepare_out(out_dir)
+    with folder_lock(out, "run"):
+        return _run(scene, prob, sim, out, resume, emit, should_stop, render, t0)
+
+
+def _run(scene, prob, sim, out, resume, emit, should_stop, render, t0):
+    cfg, opt = scene.sim, scene.optimize
     emit(f"{scene.name}: {len(prob.x0)} particles, {cfg.n_grid}^2 grid, {cfg.steps} steps, "
          f"{cfg.n_controls} control steps, loss {scene.loss.kind} on grids {list(scene.loss.grids)}, "
          f"optimizer {opt.method}, {opt.rounds} round(s), on {runtime.running_arch()}")
+    _remove_temp_files(out, emit)
     ckpt = out / "checkpoint.npz"
     done, starts, opt_state, elapsed = [], [_initial_state(prob)], None, 0.0
     if resume:
-        done, starts, opt_state, elapsed = _load_checkpoint(ckpt, scene)
-        emit(f"resuming from {ckpt}: round {len(done) + 1} of {opt.rounds}")
+        done, starts, opt_state, elapsed = _load_checkpoint(ckpt, scene, prob)
+        emit(f"resuming from {ckpt}: " + (f"round {len(done) + 1} of {opt.rounds}" if len(done) < opt.rounds
+                                          else "every round is done; writing the result"))
     method = METHODS[opt.method]
-    interrupted = False
     while len(done) < opt.rounds:
         r = len(done)
         sim.set_initial(**starts[r])
@@ -85,37 +110,48 @@ def run_scene(scene, out_dir, resume=False, emit=print, should_stop=None, render
                      emit=emit, resume=opt_state)
         opt_state = None
         if res.reason == "interrupted":
-            interrupted = True
-            break
+            emit(f"interrupted: progress saved to {ckpt}; continue with --resume")
+            return {"scene": scene.name, "interrupted": True, "wall_seconds": elapsed + time.perf_counter() - t0}
         done.append(res)
-        sim.forward(res.controls)
-        final = sim.state(cfg.steps)
-        if res.positions is not None:
-            final["x"] = res.positions
-        nxt = {"x": final["x"]}
-        if opt.carry_state:
-            nxt.update(v=final["v"], C=final["C"], F=final["F"])
-        starts.append({**_initial_state(prob), **nxt})
+        if len(done) < opt.rounds:
+            starts.append(_next_start(scene, prob, sim, starts[r], res))
         _save_checkpoint(ckpt, scene, done, starts, None, elapsed + time.perf_counter() - t0)
     wall = elapsed + time.perf_counter() - t0
-    if interrupted:
-        emit(f"interrupted: progress saved to {ckpt}; continue with --resume")
-        return {"scene": scene.name, "interrupted": True, "wall_seconds": wall}
-    summary = _finish(scene, prob, sim, done, starts, out, wall)
+    summary = _finish(scene, prob, sim, done, starts, out, wall, emit)
     ckpt.unlink(missing_ok=True)
     if render:
         from .render_run import render_run
 
-        render_run(out, emit=emit)
+        try:
+            render_run(out, emit=emit, should_stop=should_stop)
+        except Interrupted:
+            emit(f"rendering interrupted: the result is saved in {out}; `mls-mpm render {out}` renders it")
+            return {**summary, "interrupted": True, "render_interrupted": True}
     emit(f"loss {summary['loss_initial']:.6e} -> {summary['loss_final']:.6e}, iou {summary['iou']:.3f}, "
          f"mass outside target {summary['mass_outside_target']:.3f}, {wall:.1f} s; results in {out}")
     return summary
 
 
-def _finish(scene, prob, sim, done, starts, out, wall):
+def _final_state(scene, sim, start, res):
+    """The state of the last step of a finished round, re-simulated from its initial state and controls."""
+    sim.set_initial(**start)
+    sim.forward(res.controls)
+    final = sim.state(scene.sim.steps)
+    if res.positions is not None:  # the `positions` study moves the final particles directly
+        final["x"] = res.positions
+    return final
+
+
+def _next_start(scene, prob, sim, start, res):
+    """Initial state of the round after `res`: its final positions (and v, C, F with carry_state)."""
+    final = _final_state(scene, sim, start, res)
+    keep = STATE_KEYS if scene.optimize.carry_state else ("x",)
+    return {**_initial_state(prob), **{k: final[k] for k in keep}}
+
+
+def _finish(scene, prob, sim, done, starts, out, wall, emit):
     cfg = scene.sim
-    final = starts[-1] if scene.optimize.method == "positions" else sim.state(cfg.steps)
-    final_x = done[-1].positions if done[-1].positions is not None else final["x"]
+    final_x = _final_state(scene, sim, starts[len(done) - 1], done[-1])["x"]
     finest = int(np.argmax(scene.loss.grids))
     res = scene.loss.grids[finest]
     target = prob.target_mass_grids[finest]
@@ -150,10 +186,34 @@ def _finish(scene, prob, sim, done, starts, out, wall):
     if prob.target_points is not None:
         arrays["target_points"] = prob.target_points
         arrays["target_colors"] = prob.target_colors
+    _remove_stale_renders(out, emit)
     save_npz(out / "result.npz", {"summary": {k: v for k, v in summary.items() if k != "settings"},
                                   "settings": summary["settings"], "method": scene.optimize.method}, arrays)
     save_json(out / "summary.json", summary)
     return summary
+
+
+def _remove_temp_files(out, emit):
+    """Temp files of atomic writes that a killed process left in the folder or its frames/."""
+    stale = [p for d in (out, out / "frames") if d.is_dir() for p in d.glob(TEMP_GLOB) if p.is_file()]
+    for p in stale:
+        p.unlink(missing_ok=True)
+    if stale:
+        emit(f"removed {len(stale)} temp file(s) left in {out} by a killed run")
+
+
+def _remove_stale_renders(out, emit):
+    """The renders of an earlier run in the folder, which would otherwise sit beside this run's result."""
+    found = [name for name in RENDER_OUTPUTS if (out / name).exists() or (out / name).is_symlink()]
+    for name in found:
+        p = out / name
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p)
+        else:
+            p.unlink()
+    if found:
+        emit(f"removed the renders of an earlier run from {out}: "
+             + ", ".join(n + ("/" if n == "frames" else "") for n in found))
 
 
 def _save_checkpoint(path, scene, done, starts, opt_state, elapsed):
@@ -172,20 +232,93 @@ def _save_checkpoint(path, scene, done, starts, opt_state, elapsed):
     save_npz(path, meta, arrays)
 
 
-def _load_checkpoint(path, scene):
-    from .optimize import OptimizeResult
-
+def _load_checkpoint(path, scene, prob):
+    """(done rounds, initial states, optimizer state or None, elapsed seconds) of a checkpoint, each part
+    checked against the scene: CheckpointError names the file, the entry and what was expected."""
     meta, arrays = load_npz(path, "checkpoint")
-    if meta.get("fingerprint") != fingerprint(scene):
-        raise CheckpointError(f"{path}: made with other scene settings; drop --resume to start over, or use "
-                              "the settings it was made with")
-    done = [OptimizeResult(arrays[f"round_controls_{i}"], r["losses"], r["iterations"], r["converged"], r["reason"],
-                           r["grad_norms"], arrays.get(f"round_positions_{i}"))
-            for i, r in enumerate(meta["rounds"])]
-    n_starts = len(arrays["start_x"])
+    what = "checkpoint"
+    theirs = meta.get("fingerprint")
+    if theirs != fingerprint(scene):
+        raise CheckpointError(f"{path}: made with other scene settings ({_differences(theirs, fingerprint(scene))}); "
+                              "drop --resume to start over, or use the settings it was made with")
+    opt = scene.optimize
+    K, N = scene.sim.n_controls, len(prob.x0)
+    controls = (K, N, 2, 2)
+    rounds = meta.get("rounds")
+    if not isinstance(rounds, list) or len(rounds) > opt.rounds:
+        raise CheckpointError(f"{path}: rounds is {json.dumps(rounds)[:40]}: expected a list of at most {opt.rounds} "
+                              f"finished round(s); not a {what} of this scene; delete it or re-run")
+    done = []
+    for i, r in enumerate(rounds):
+        check_value(path, f"rounds[{i}]", r, "table", what)
+        for key, kind in (("losses", "floats"), ("iterations", "int"), ("converged", "bool"), ("reason", "str"),
+                          ("grad_norms", "floats")):
+            check_value(path, f"rounds[{i}].{key}", r.get(key), kind, what)
+        _require_losses(path, f"rounds[{i}].losses", r["losses"])
+        positions = None
+        if opt.method == "positions":
+            positions = check_array(path, arrays, f"round_positions_{i}", "f", (N, 2), what)
+        done.append(OptimizeResult(check_array(path, arrays, f"round_controls_{i}", "f", controls, what),
+                                   r["losses"], r["iterations"], r["converged"], r["reason"], r["grad_norms"],
+                                   positions))
+    n_starts = min(len(done) + 1, opt.rounds)
+    for k in STATE_KEYS:
+        check_array(path, arrays, f"start_{k}", "f", (n_starts, N, *STATE_SHAPES[k]), what)
     starts = [{k: arrays[f"start_{k}"][i] for k in STATE_KEYS} for i in range(n_starts)]
     opt_state = None
-    if "opt" in meta:
-        opt_state = dict(meta["opt"])
-        opt_state.update({k[4:]: v for k, v in arrays.items() if k.startswith("opt_")})
-    return done, starts, opt_state, float(meta.get("elapsed", 0.0))
+    if "opt" in meta and len(done) < opt.rounds:
+        st = check_value(path, "opt", meta["opt"], "table", what)
+        opt_state = {"loss": check_value(path, "opt.loss", st.get("loss"), "float", what),
+                     "controls": check_array(path, arrays, "opt_controls", "f", controls, what)}
+        shapes = {"like_controls": controls, "particles": (N, 2), "pairs": (None, K * N * 4)}
+        for key, kind in STATE[opt.method].items():
+            if kind in shapes:
+                opt_state[key] = check_array(path, arrays, f"opt_{key}", "f", shapes[kind], what)
+            elif kind == "per_control":
+                opt_state[key] = check_value(path, f"opt.{key}", st.get(key), "floats", what, length=K)
+            else:
+                opt_state[key] = check_value(path, f"opt.{key}", st.get(key), kind, what)
+        _require_losses(path, "opt.losses", opt_state["losses"])
+        pairs = [opt_state[k] for k, kind in STATE[opt.method].items() if kind == "pairs"]
+        if pairs and (len({len(p) for p in pairs}) != 1 or len(pairs[0]) > PAIRS_MAX):
+            raise CheckpointError(f"{path}: opt_S and opt_Y hold {len(pairs[0])} and {len(pairs[-1])} pairs: "
+                                  f"expected as many of each, at most {PAIRS_MAX}; delete it or re-run")
+    elapsed = check_value(path, "elapsed", meta.get("elapsed", 0.0), "float", what)
+    return done, starts, opt_state, float(elapsed)
+
+
+def _require_losses(path, where, losses):
+    if not losses:
+        raise CheckpointError(f"{path}: {where} is empty: expected the loss of the starting controls at least; "
+                              "delete it or re-run")
+
+
+def _differences(theirs, ours):
+    """'sim.steps: 150 in the checkpoint, 100 now; ...' for the settings two fingerprints disagree on."""
+    try:
+        old = json.loads(theirs)
+    except (TypeError, ValueError):
+        return "it records no readable settings"
+    if not isinstance(old, dict):
+        return "it records no readable settings"
+    a, b = dict(_flat(old)), dict(_flat(json.loads(ours)))
+    keys = sorted(k for k in a.keys() | b.keys() if a.get(k, _ABSENT) != b.get(k, _ABSENT))
+    shown = [f"{k}: {_show(a.get(k, _ABSENT))} in the checkpoint, {_show(b.get(k, _ABSENT))} now"
+             for k in keys[:MISMATCHES_SHOWN]]
+    more = len(keys) - len(shown)
+    return "; ".join(shown) + (f"; and {more} more" if more > 0 else "") if shown else "unknown differences"
+
+
+_ABSENT = object()
+
+
+def _flat(d, prefix=""):
+    for k, v in d.items():
+        if isinstance(v, dict):
+            yield from _flat(v, f"{prefix}{k}.")
+        else:
+            yield f"{prefix}{k}", v
+
+
+def _show(v):
+    return "absent" if v is _ABSENT else json.dumps(v)

@@ -23,7 +23,7 @@ from mls_mpm.scene import load_scene
 from mls_mpm.simulator import Simulator
 
 TINY = Path(__file__).resolve().parent / "data" / "tiny.toml"
-BASE = ["optimize.iterations=3", "optimize.tol=0.0"]
+BASE = ["optimize.iterations=3", "optimize.tol=0.0", "sim.schedule=serial"]  # serial: a bit-identical replay
 SUMMARY_KEYS = {"scene", "loss_initial", "loss_final", "iou", "mass_outside_target", "iterations", "converged",
                 "wall_seconds", "settings"}
 
@@ -184,14 +184,58 @@ K_BOUNDARY_BUG = ("bug: gd interrupted after the last control step of a temporal
     ("gd", 4),  # after its last control (k = K checkpointed)
     ("gd", 5),  # between temporal iterations 1 and 2
     ("adam", 2),
+    ("lbfgs", 2),
 ])
 def test_resume_equals_uninterrupted(runs, tmp_path, method, n):
     scene, _, whole = runs(method)
     meta = interrupt(scene, tmp_path, n)
-    assert meta["opt"]["iteration"] == (n if method == "adam" else n // 5)
+    assert meta["opt"]["iteration"] == (n // 5 if method == "gd" else n)
     summary = run(scene, tmp_path, resume=True, render=False)
     assert "interrupted" not in summary
     assert_same_run(tmp_path, whole)
+
+
+def test_resume_equals_uninterrupted_parallel_schedule(tmp_path_factory):
+    """The parallel schedule (private grids per thread) must replay bit for bit too."""
+    scene = scene_of("optimize.method=lbfgs", "sim.schedule=parallel", "sim.threads=2")
+    whole, part = tmp_path_factory.mktemp("whole_parallel"), tmp_path_factory.mktemp("part_parallel")
+    run(scene, whole, render=False)
+    interrupt(scene, part, 1)
+    run(scene, part, resume=True, render=False)
+    assert_same_run(part, whole)
+
+
+def test_resume_when_every_round_is_done(runs, tmp_path, monkeypatch):
+    """A run killed after its last checkpoint (every round done) but before its result: the resume re-simulates
+    the last round for the final state instead of reading a Simulator that never ran."""
+    import mls_mpm.run as run_module
+
+    scene, _, whole = runs("lbfgs")
+
+    def killed(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    with monkeypatch.context() as m:
+        m.setattr(run_module, "_finish", killed)
+        with pytest.raises(KeyboardInterrupt):
+            run(scene, tmp_path, render=False)
+    meta, _ = load_npz(tmp_path / "checkpoint.npz", "checkpoint")
+    assert len(meta["rounds"]) == 1 and "opt" not in meta
+    lines = []
+    fresh_taichi()
+    run_scene(scene, tmp_path, resume=True, render=False, emit=lines.append)
+    assert any("every round is done" in line for line in lines), lines
+    assert_same_run(tmp_path, whole)
+
+
+def test_zero_iterations_give_the_initial_controls(tmp_path):
+    """optimize.iterations = 0 (lbfgs raised IndexError and left a checkpoint): the result holds the initial
+    controls and loss, stopped by the iteration budget."""
+    summary = run(scene_of("optimize.method=lbfgs", "optimize.iterations=0"), tmp_path, render=False)
+    _, arrays = result(tmp_path)
+    assert summary["iterations"] == 0 and summary["stop_reason"] == ["iteration budget"]
+    assert summary["loss_final"] == summary["loss_initial"] and arrays["losses"].tolist() == [summary["loss_initial"]]
+    assert not np.any(arrays["controls"]) and not (tmp_path / "checkpoint.npz").exists()
 
 
 def test_resume_allows_a_larger_iteration_budget(runs, tmp_path):
