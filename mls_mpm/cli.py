@@ -210,13 +210,21 @@ def cmd_check(args):
 
 
 def cmd_render(args):
+    import contextlib
+    from pathlib import Path
+
     from .errors import Interrupted
+    from .lock import folder_lock
     from .render_run import render_run
 
     stop = StopFlag()
     restore = stop.install()
+    # a folder that a run (or another render) is writing is refused; a missing one is render_run's to report
+    held = folder_lock(args.dir, "render") if Path(args.dir).is_dir() else contextlib.nullcontext()
     try:
-        render_run(args.dir, mode=args.mode, size=args.size, every=args.every, arch=args.arch, should_stop=stop)
+        with held:
+            render_run(args.dir, mode=args.mode, size=args.size, every=args.every, arch=args.arch,
+                       should_stop=stop)
     except Interrupted as e:
         return _interrupted(stop, e)
     finally:

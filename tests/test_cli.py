@@ -270,6 +270,18 @@ def test_check_passes_and_prints_relative_errors():
     assert "300 particles, 12 steps" in stdout
 
 
+def test_render_refuses_a_folder_another_job_holds(tmp_path):
+    """`render` takes the output folder's lock like `run`: while another job holds it, one line, exit 2."""
+    from mls_mpm.lock import folder_lock
+
+    with folder_lock(tmp_path, "run"):
+        code, _, stderr = call("render", tmp_path)
+    assert code == 2
+    assert stderr.count("\n") == 1 and "another mls-mpm job is using this output folder" in stderr
+    code, _, stderr = call("render", tmp_path)  # released: now the missing result is what is wrong
+    assert code == 2 and "result.npz" in stderr and "another mls-mpm job" not in stderr
+
+
 def test_check_fails_beyond_tolerance(monkeypatch):
     """A manual gradient 1% off (a deliberately broken backward) fails both comparisons, far above the round-off
     floor, with exit code 1 and FAILED."""
