@@ -7,7 +7,7 @@ inputs, with w put in the AdjointState as the upstream adjoint dL/dy. Every inpu
 Tape to a symmetric relative error of at most 1e-8 (both are exact in exact arithmetic; float64 round-off
 through one kernel stays near 1e-14).
 
-Reverse kernels accumulate (+=) into adjoints they share with other kernels (STYLE 4), so those adjoints are
+Reverse kernels accumulate (+=) into adjoints they share with other kernels, so those adjoints are
 prefilled with random values b and the test compares (result - b) with the Tape.
 
 Tape(validation=True) is not used here: Taichi only checks the global data access rule under
@@ -19,7 +19,7 @@ import pytest
 import taichi as ti
 
 from adjoint.grid import grid_op_reverse
-from adjoint.losses import grid_loss_reverse, position_loss_reverse, seed, splat_reverse
+from adjoint.losses import evaluate_reverse, grid_loss_reverse, position_loss_reverse, splat_reverse
 from adjoint.material import stress_reverse
 from adjoint.state import AdjointState
 from adjoint.transfer import g2p_reverse, p2g_reverse
@@ -502,7 +502,7 @@ def test_position_loss_seed_matches_tape(loss_pair):
 
 
 def test_seed_sums_every_loss_and_zeroes_the_rest(loss_pair):
-    """seed() zeroes both particle slots and dL/dv_i, then sums every grid's and the position term's dL/dx
+    """evaluate_reverse() (the loss seed, twin of losses.evaluate) zeroes both particle slots and dL/dv_i, then sums every grid's and the position term's dL/dx
     (eq 41-43, 10); dL/dv, dL/dF, dL/dC of step N_t are zero (eq 44-46). Rel err <= 1e-8 against one Tape of
     the full loss; the other slot, where reverse step N_t - 1 accumulates, must be exactly zero."""
     pair, f = loss_pair, 3
@@ -515,7 +515,7 @@ def test_seed_sums_every_loss_and_zeroes_the_rest(loss_pair):
                      {"adj_x": np.ones((2, pair.N, 2)), "adj_v": np.ones((2, pair.N, 2)),
                       "adj_C": np.ones((2, pair.N, 2, 2)), "adj_F": np.ones((2, pair.N, 2, 2)),
                       "adj_grid_v": np.ones((pair.n, pair.n, 2))})
-    seed(s, a, f)
+    evaluate_reverse(s, a, f)
     slot = f % 2
     assert rel_err(a.adj_x.to_numpy()[slot], tape_x) <= TOL
     assert np.all(a.adj_x.to_numpy()[1 - slot] == 0.0)

@@ -278,11 +278,15 @@ def test_nan_control_raises(free_sim):
     (dict(n_grid=9, bound=3), "n_grid"),
     (dict(boundary="periodic"), "boundary"),
     (dict(E=0.0), "E"),
+    (dict(particles_per_cell=10 ** 30), "particles_per_cell"),
+    (dict(threads=10 ** 30), "threads"),
+    (dict(threads=-1), "threads"),
 ])
 def test_config_rejects_bad_values(change, name):
     """SimConfig refuses values the simulator cannot use, with a ConfigError naming the setting:
     steps = 0, dt <= 0 or NaN, nu outside [0, 0.5), gamma dt >= 1 (eq 16's factor 1 - dt gamma would flip sign),
-    stride > steps, n_grid < 2 bound + 4 (no node outside the walls for a 4x4 stencil)."""
+    stride > steps, n_grid < 2 bound + 4 (no node outside the walls for a 4x4 stencil), particles_per_cell above
+    MAX_PARTICLES_PER_CELL and threads above MAX_THREADS (10**30 would reach the allocator or Taichi)."""
     with pytest.raises(mls_mpm.ConfigError, match=f"^{name} = "):
         mls_mpm.SimConfig(**{**dict(n_grid=32, steps=30, dt=1e-3, E=100.0), **change})
 
@@ -290,3 +294,9 @@ def test_config_rejects_bad_values(change, name):
 def test_config_accepts_the_limits():
     """The boundary values just inside the limits are accepted (a refusal off by one would show here)."""
     mls_mpm.SimConfig(n_grid=10, bound=3, steps=30, stride=30, dt=1e-3, E=100.0, nu=0.0, gamma=999.0)
+    from mls_mpm.config import MAX_PARTICLES_PER_CELL, MAX_THREADS
+    mls_mpm.SimConfig(n_grid=32, steps=30, dt=1e-3, E=100.0, particles_per_cell=MAX_PARTICLES_PER_CELL,
+                      threads=MAX_THREADS)
+    with pytest.raises(mls_mpm.ConfigError, match=rf"^threads = {MAX_THREADS + 1}: expected an integer in "
+                                                  rf"\[0, {MAX_THREADS}\]$"):
+        mls_mpm.SimConfig(threads=MAX_THREADS + 1)
