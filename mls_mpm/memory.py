@@ -112,9 +112,9 @@ def check_memory(cfg, n_particles, grids=(), where="", position_loss=False, tape
         limit = 0.9 * free if free else None
     if limit is not None and need > limit:
         big = max(ps, key=lambda p: p.bytes)
-        what = "the Tape's grad-enabled fields (gradient_tape)" if tape else "the simulation"
+        what = "the Tape's grad-enabled fields (gradient_tape) need" if tape else "the simulation needs"
         f32 = ", use sim.dtype = f32" if cfg.dtype == "f64" else ""
-        raise ConfigError(f"{where}{what} needs about {need / 2 ** 30:.2f} GiB ({cfg.steps} steps, {n_particles} "
+        raise ConfigError(f"{where}{what} about {need / 2 ** 30:.2f} GiB ({cfg.steps} steps, {n_particles} "
                           f"particles, a {cfg.n_grid}^2 grid, {cfg.dtype}), above the limit of "
                           f"{max(limit, 0) / 2 ** 30:.3g} GiB; the largest part is {big.what} "
                           f"({big.bytes / 2 ** 30:.2f} GiB): lower {big.lower}{f32}, or raise sim.max_memory_gb")

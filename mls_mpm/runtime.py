@@ -138,9 +138,9 @@ class TaichiRuntime:
         """Raise StaleSimulatorError when Taichi was re-initialised after generation `generation`."""
         self.current()
         if generation != self.generation or impl.get_runtime().prog is None:
-            now = f"for {self.settings}" if impl.get_runtime().prog is not None else "and since reset"
-            raise StaleSimulatorError(f"{what} was built for {built_for}; Taichi has since been re-initialised "
-                                      f"{now}, which freed its fields; build a new Simulator")
+            now = (f"re-initialised for {self.settings}" if impl.get_runtime().prog is not None else "reset")
+            raise StaleSimulatorError(f"{what} was built for {built_for}; Taichi has since been {now}, which freed "
+                                      "its fields; build a new Simulator")
 
 
 RUNTIME = TaichiRuntime()

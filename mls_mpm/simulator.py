@@ -131,6 +131,7 @@ class Simulator:
         self._forward_done = True
         return L
 
+    @_live
     def backward(self, stop=None):
         """dL/dF_pc (K, N, 2, 2) of the last forward pass, from the hand-written reverse kernels.
 
