@@ -36,6 +36,12 @@ def _check_backend(cfg, loss):
                           "use sim.dtype = f32, loss.kind = mass, or sim.arch = cpu or cuda")
 
 
+def _largest_norm(controls):
+    """The largest Frobenius norm |F_pc| over controls (K, N, 2, 2), scaled so that 1e200 does not overflow."""
+    scale = float(np.max(np.abs(controls), initial=0.0))
+    return scale * float(np.max(np.linalg.norm(controls / scale, axis=(2, 3)))) if scale > 0 else 0.0
+
+
 class Simulator:
     """A differentiable MLS-MPM simulation of N particles over cfg.steps steps.
 
@@ -114,7 +120,7 @@ class Simulator:
         s = self.fields
         self._forward_done = self._backward_done = False
         self._stored = start
-        self._control_size = float(np.max(np.linalg.norm(controls, axis=(2, 3)), initial=0.0))
+        self._control_size = _largest_norm(controls)
         s.F_pc.from_numpy(controls.astype(self.np_dtype))
         s.clear_faults()
         clear_grid(s, start)
