@@ -60,8 +60,8 @@ def test_forward_and_backward_are_bit_identical(sim):
 
 
 def test_fault_names_the_lowest_faulty_particle(sim):
-    """NaN in F of particles N/2 - 1 (the last of thread 0's share), N/2 (the first of thread 1's) and N - 1 at
-    step 0: thread 1 meets its particle first, yet the report names particle N/2 - 1."""
+    """NaN in F of particles N/2 - 1 (the last of lane 0's share), N/2 (the first of lane 1's) and N - 1 at
+    step 0: whichever lane reaches its faulty particle first, the report names particle N/2 - 1."""
     sim, x0 = sim
     F = np.tile(np.eye(2), (N, 1, 1))
     for p in (N // 2 - 1, N // 2, N - 1):
