@@ -43,7 +43,8 @@ def parts(cfg, n_particles, grids=(), position_loss=False, tape=False):
     copies = 2 if tape else 1  # needs_grad doubles every differentiated field
     colors = any(ch == 3 for _, ch, _ in grids)
     out = [
-        Part(f"the particle states (x, v, C, F) of {T + 1} steps x {N} particles", "sim.steps or sim.particles_per_cell",
+        Part(f"the particle states (x, v, C, F) of {T + 1} steps x {N} particles",
+             "sim.steps or sim.particles_per_cell",
              copies * (T + 1) * N * 12 * w),
         Part(f"the grid states (m, p, v) of {T} steps on the {n}^2 grid", "sim.n_grid or sim.steps",
              copies * T * n * n * 5 * w + (0 if tape else n * n * 5 * w)),  # + the adjoint's one grid

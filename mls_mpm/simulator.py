@@ -289,7 +289,8 @@ class Simulator:
             causes.append(f"dt = {cfg.dt:.6g} above the CFL limit {cfg.cfl_dt:.6g} for this E, nu and density "
                           "(lower sim.dt)")
         if g * max(f, 1) * cfg.dt > cell_speed:
-            causes.append(f"gravity: |g| = {g:.3g} for {max(f, 1)} steps gives a speed of {g * max(f, 1) * cfg.dt:.3g}, "
+            causes.append(f"gravity: |g| = {g:.3g} for {max(f, 1)} steps gives a speed of "
+                          f"{g * max(f, 1) * cfg.dt:.3g}, "
                           f"above dx / dt = {cell_speed:.3g} (one cell per step; lower sim.gravity or sim.dt)")
         if self._control_size > 0.5:
             causes.append(f"controls up to |F_pc| = {self._control_size:.3g}, enough to make F + F_pc singular "

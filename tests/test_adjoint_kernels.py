@@ -611,8 +611,8 @@ def test_position_loss_seed_matches_tape(loss_pair):
 
 
 def test_seed_sums_every_loss_and_zeroes_the_rest(loss_pair):
-    """evaluate_reverse() (the loss seed, twin of losses.evaluate) zeroes both particle slots and dL/dv_i, then sums every grid's and the position term's dL/dx
-    (eq 41-43, 10); dL/dv, dL/dF, dL/dC of step N_t are zero (eq 44-46). Rel err <= 1e-8 against one Tape of
+    """evaluate_reverse() (the loss seed, twin of losses.evaluate) zeroes both particle slots and dL/dv_i, then
+    sums every grid's and the position term's dL/dx (eq 41-43, 10); dL/dv, dL/dF, dL/dC of step N_t are zero (eq 44-46). Rel err <= 1e-8 against one Tape of
     the full loss; the other slot, where reverse step N_t - 1 accumulates, must be exactly zero."""
     pair, f = loss_pair, 3
     tape_x, _ = run_loss_tape(pair, f, range(len(LOSS_GRIDS)), position=True)

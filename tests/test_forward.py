@@ -298,8 +298,9 @@ def test_nan_control_raises(free_sim):
 def test_config_rejects_bad_values(change, name):
     """SimConfig refuses values the simulator cannot use, with a ConfigError naming the setting:
     steps = 0, dt <= 0 or NaN, nu outside [0, 0.5), gamma dt >= 1 (eq 16's factor 1 - dt gamma would flip sign),
-    stride > steps, n_grid below config.min_n_grid(bound) (too few nodes inside the walls for a 4x4 stencil), particles_per_cell above
-    MAX_PARTICLES_PER_CELL and threads above MAX_THREADS (10**30 would reach the allocator or Taichi)."""
+    stride > steps, n_grid below config.min_n_grid(bound) (too few nodes inside the walls for a 4x4 stencil),
+    particles_per_cell above MAX_PARTICLES_PER_CELL and threads above MAX_THREADS (10**30 would reach the
+    allocator or Taichi)."""
     with pytest.raises(mls_mpm.ConfigError, match=f"^{name} = "):
         mls_mpm.SimConfig(**{**dict(n_grid=32, steps=30, dt=1e-3, E=100.0), **change})
 

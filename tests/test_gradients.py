@@ -203,7 +203,8 @@ def test_backward_needs_a_successful_forward():
     when step k was never stored. (Refused before any kernel runs: this Simulator compiles nothing.)"""
     cfg = scene_config()
     sim = mls_mpm.Simulator(cfg, blob(), loss=mls_mpm.MassLoss([disk_mass(32, (0.5, 0.5), 0.1)]))
-    with pytest.raises(RuntimeError, match=r"^backward\(\): no successful forward pass .*; call forward\(controls\) first$"):
+    with pytest.raises(RuntimeError,
+                       match=r"^backward\(\): no successful forward pass .*; call forward\(controls\) first$"):
         sim.backward()
     for name in ("grad_x0", "grad_v0"):
         with pytest.raises(RuntimeError, match=rf"^{name}: no successful backward pass .*; call backward\(\) after "

@@ -71,7 +71,8 @@ def test_threads_that_differ_from_taichis_reinitialise():
     assert sim.fields.lanes == 1
     two = mls_mpm.Simulator(config(threads=2), blob(n_grid=16, radius=0.2))
     assert impl.current_cfg().cpu_max_num_threads == 2 and two.fields.lanes == 2
-    with pytest.raises(StaleSimulatorError, match="built for f64 on cpu with 1 thread; .* for f64 on cpu with 2 threads"):
+    with pytest.raises(StaleSimulatorError,
+                       match="built for f64 on cpu with 1 thread; .* for f64 on cpu with 2 threads"):
         sim.state(0)
 
 
