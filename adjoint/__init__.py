@@ -1,1 +1,67 @@
-"""Hand-written reverse kernels (thesis eq 41-71): one reverse twin per forward kernel of mls_mpm."""
+"""Hand-written reverse kernels (thesis eq 41-71): one reverse twin per forward function of mls_mpm's step.
+
+A forward function `mls_mpm.<module>.<name>` has its twin `adjoint.<module>.<name>_reverse`, with the same
+arguments plus the adjoint state `a` where it needs one. TWINS lists each pair with the thesis equations the
+twin implements; NO_TWIN lists the forward functions that have none, and why. tests/test_twins.py checks that
+the two tables cover every forward function of the step's modules and that tests/test_adjoint_kernels.py
+exercises every twin.
+"""
+
+# module -> {forward function: thesis equations of its reverse twin (forward name + "_reverse")}
+TWINS = {
+    "transfer": {
+        "p2g_particle": "eq 54-65, 71",
+        "g2p_particle": "eq 47-48, 57, 66-69",
+        "p2g": "eq 54-65, 71",
+        "g2p": "eq 47-48, 57, 66-69",
+        "check_particle": "a non-finite adjoint (no equation)",
+        "record_fault": "a non-finite adjoint (no equation)",
+    },
+    "grid": {
+        "grid_op_node": "eq 49-53",
+        "grid_op": "eq 49-53",
+    },
+    "material": {
+        "stress": "eq 57 (second term)",
+    },
+    "losses": {
+        "splat": "eq 42-43",
+        "grid_loss": "eq 41, 72",
+        "position_loss": "eq 10",
+        "evaluate": "eq 41-46",
+    },
+    "step": {
+        "gather_lanes": "sum of the private grids of dL/dv_i",
+        "grid_node": "eq 49-53",
+        "step_loops": "eq 47-71",
+        "substep": "eq 47-71",
+        "run_serial": "eq 47-71",
+    },
+}
+
+# module -> {forward function without a twin: why}
+NO_TWIN = {
+    "transfer": {
+        "control_sum": "F + F_pc is linear: p2g_particle_reverse adds dL/dF_p to dL/dF_pc (eq 55)",
+        "affine_momentum": "differentiated inline by p2g_particle_reverse (eq 54, 57-58)",
+        "scatter_node": "its reverse is the gather of dL/dm_i, dL/dp_i inside p2g_particle_reverse (eq 59-65)",
+        "check_step": "the check of the last step; the reverse checks every step in step_loops_reverse",
+    },
+    "grid": {
+        "wall_mask": "piecewise constant: grid_op_node_reverse applies the same mask (eq 50)",
+        "free_velocity": "differentiated inline by grid_op_node_reverse (eq 50-53)",
+    },
+    "material": {
+        "cofactor": "linear: stress_reverse uses cofactor itself as its adjoint",
+        "polar_rotation": "differentiated inline by stress_reverse (dR/dtheta)",
+    },
+    "losses": {
+        "splat_value": "constant in x: splat_reverse reads it",
+        "node_residual": "differentiated inline by grid_loss_reverse (eq 41; log mass: 1 / (m_i + 1))",
+        "node_penalty": "constant: grid_loss_reverse reads it (eq 72)",
+    },
+    "step": {
+        "clear_node": "zeroes an accumulator: the reverse zeroes its adjoints where it consumes them",
+        "clear_grid": "zeroes an accumulator: adjoint.state.zero_step zeroes the adjoints before a reverse pass",
+    },
+}

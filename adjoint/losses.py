@@ -1,4 +1,4 @@
-"""Back-propagation initialization (eq 41-46): loss seeds on the final step's particles."""
+"""Back-propagation initialization (eq 41-46): the loss seeds on the final step's particles, twins of mls_mpm.losses."""
 import taichi as ti
 
 from mls_mpm.kernels import node_weight, stencil, weights
@@ -40,8 +40,9 @@ def position_loss_reverse(s: ti.template(), a: ti.template(), f: ti.i32):
         a.adj_x[f % 2, p] += s.x[f, p] - s.target_x[p]
 
 
-def seed(s, a, f):
-    """Set dL/d(x, v, C, F) of step f from the loss (v, C, F get zero: eq 44-46)."""
+def evaluate_reverse(s, a, f):
+    """Seed the reverse pass (twin of mls_mpm.losses.evaluate): set dL/d(x, v, C, F) of step f from the loss
+    (v, C, F get zero: eq 44-46)."""
     zero_step(s, a, f)
     for g in s.loss_grids:
         grid_loss_reverse(s, g)

@@ -16,7 +16,8 @@ class AdjointState:
         self.adj_grid_p = ti.Vector.field(2, dtype, shape=(n, n))  # dL/dp_i
         self.adj_grid_v = ti.Vector.field(2, dtype, shape=(n, n))  # dL/dv_i
         self.adj_F_pc = ti.Matrix.field(2, 2, dtype, shape=(s.n_controls, N))  # dL/dF_pc^k, the result
-        self.fault = ti.field(ti.i64, shape=())  # first f * N + p whose adjoint went non-finite
+        # the latest step f whose adjoint went non-finite, and its lowest particle p, as f * N + (N - 1 - p); -1: none
+        self.fault = ti.field(ti.i64, shape=())
         if s.lanes:
             self.lane_adj_v = ti.Vector.field(2, dtype, shape=(s.lanes, n, n))  # one thread's private dL/dv_i
 

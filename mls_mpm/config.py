@@ -17,6 +17,14 @@ MAX_THREADS = 1024  # CPU threads a simulation may ask for
 MAX_PARTICLES_PER_CELL = 1024  # particles sampled per cell (per cell volume in 3D)
 
 
+def default_threads() -> int:
+    """CPU threads of `threads = 0`: the cores this process may run on (its affinity mask), else all cores."""
+    try:
+        return len(os.sched_getaffinity(0)) or 1
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
 def min_n_grid(bound: int) -> int:
     """The smallest grid for walls `bound` cells wide: the default region, (bound + 2) cells inside each edge,
     must hold 2 cells, which also leaves room for the 4-node stencil inside the walls."""
@@ -46,10 +54,11 @@ class SimConfig:
         on nodes closer than `bound` cells to an edge.
     bound: width of the wall zone in cells.
     stride: control stride s; control k acts at step k*s, K = ceil(steps / s) controls.
-    particles_per_cell: sets V_p^0 and the image sampling density.
+    particles_per_cell: sets V_p^0 and the image sampling density (at most MAX_PARTICLES_PER_CELL).
     dtype: "f64" or "f32" for every field and kernel.
     arch: "cpu", or "gpu" (CUDA, else Vulkan), "cuda", "vulkan"; runtime.ensure refuses one that cannot start.
-    threads: CPU threads (0: all cores).
+    threads: CPU threads, at most MAX_THREADS (0: the cores this process may run on, `default_threads()`);
+        Taichi is re-initialised when it runs with another count (see runtime.TaichiRuntime).
     schedule: "parallel" launches one kernel per step with parallel loops; "serial" runs all steps in one
         serial launch (faster for small scenes on a CPU, where launch cost dominates); "auto" picks
         serial on a CPU below SERIAL_BELOW particle-node units (see BENCHMARKS.md), else parallel.
@@ -81,8 +90,8 @@ class SimConfig:
         _check_int(self, "steps", 1)
         _check_int(self, "stride", 1)
         _check_int(self, "bound", 0)
-        _check_int(self, "particles_per_cell", 1)
-        _check_int(self, "threads", 0)
+        _check_int(self, "particles_per_cell", 1, MAX_PARTICLES_PER_CELL)
+        _check_int(self, "threads", 0, MAX_THREADS)
         if isinstance(self.max_memory_gb, bool) or not isinstance(self.max_memory_gb, (int, float)) \
                 or not self.max_memory_gb >= 0:
             raise ConfigError(f"max_memory_gb = {self.max_memory_gb!r}: expected a number >= 0 (0: automatic)")
@@ -161,7 +170,12 @@ class SimConfig:
         """Private scatter grids (one per CPU thread) of the parallel schedule; 0: atomics (GPU) or serial."""
         if self.arch != "cpu" or self.serial(n_particles):
             return 0
-        return self.threads or os.cpu_count() or 1
+        return self.cpu_threads
+
+    @property
+    def cpu_threads(self) -> int:
+        """The CPU threads Taichi runs with for this config: `threads`, or default_threads() for 0."""
+        return self.threads or default_threads()
 
     def replace(self, **changes) -> "SimConfig":
         values = {f.name: getattr(self, f.name) for f in fields(self)}
@@ -169,10 +183,11 @@ class SimConfig:
         return SimConfig(**values)
 
 
-def _check_int(cfg, name, least):
+def _check_int(cfg, name, least, most=None):
     value = getattr(cfg, name)
-    if isinstance(value, bool) or not isinstance(value, int) or value < least:
-        raise ConfigError(f"{name} = {value!r}: expected an integer >= {least}")
+    if isinstance(value, bool) or not isinstance(value, int) or value < least or (most is not None and value > most):
+        expected = f"an integer >= {least}" if most is None else f"an integer in [{least}, {most}]"
+        raise ConfigError(f"{name} = {value!r}: expected {expected}")
 
 
 def _check_positive(cfg, name):

@@ -2,6 +2,9 @@
 
 The loss classes hold user data (numpy); the kernels below evaluate them on a State.
 A target array's shape sets its loss grid's resolution; entry [i, j] is the node at (i dx, j dx).
+On a CPU the kernels' loops run serially (State.serial_losses): their float sums then have one order, so a
+loss is bit-identical run after run; their work (one splat of the particles, one pass over each loss grid)
+is small beside the steps'.
 """
 
 from dataclasses import dataclass
@@ -120,6 +123,7 @@ def splat_value(s: ti.template(), g: ti.template(), p):
 @ti.kernel
 def splat(s: ti.template(), g: ti.template(), f: ti.i32):
     """P2G of particle mass (or color-mass) of step f onto loss grid g, with g's own dx."""
+    ti.loop_config(serialize=s.serial_losses)
     for p in range(s.n_particles):
         base, fx = stencil(s.x[f, p], g.inv_dx)
         w, _ = weights(fx)
@@ -151,13 +155,16 @@ def node_penalty(g: ti.template(), I):
 @ti.kernel
 def grid_loss(s: ti.template(), g: ti.template()):
     """L += w_g sum_i 1/2 alpha_i |r_i|^2 (eq 11, 13, 72)."""
-    for I in ti.grouped(g.m):
+    ti.loop_config(serialize=s.serial_losses)
+    for i, j in ti.ndrange(g.res, g.res):  # a range, not a struct-for, which Taichi cannot serialize
+        I = ti.Vector([i, j])
         s.loss[None] += 0.5 * node_penalty(g, I) * node_residual(g, I).norm_sqr()
 
 
 @ti.kernel
 def position_loss(s: ti.template(), f: ti.i32):
     """L += sum_p 1/2 |x_p - x_pu|^2 (eq 10)."""
+    ti.loop_config(serialize=s.serial_losses)
     for p in range(s.n_particles):
         s.loss[None] += 0.5 * (s.x[f, p] - s.target_x[p]).norm_sqr()
 

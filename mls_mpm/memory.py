@@ -1,15 +1,86 @@
-"""Memory of a simulation, estimated before anything is allocated, and the up-front refusal of what would not fit."""
+"""Memory of a simulation, estimated before anything is allocated, and the up-front refusal of what would not fit.
+
+The estimate counts every Taichi field a Simulator allocates (State, its LossGrids, the AdjointState with its
+per-thread grids) and the numpy arrays made around them (the targets, the controls and their uploads), part
+by part, so that a refusal names the part that does not fit and the scene key that sizes it.
+"""
+from dataclasses import dataclass
+
 from .config import ConfigError
 
+F64 = 8  # bytes of a numpy float64: the arrays the loss and the controls hold before upload
+I64 = 8  # bytes of a fault code
 
-def estimate_bytes(cfg, n_particles):
-    """Bytes of a State's per-step fields plus one step of adjoints: (x, v, C, F) per particle step,
-    (m, p, v) per grid step, the controls and their gradient."""
-    word = 8 if cfg.dtype == "f64" else 4
-    particle = (cfg.steps + 1) * n_particles * (2 + 2 + 4 + 4) + 2 * cfg.n_controls * n_particles * 4
-    grid = cfg.steps * cfg.n_grid ** 2 * (1 + 2 + 2)
-    adjoint = 2 * n_particles * 12 + cfg.n_grid ** 2 * 5
-    return (particle + grid + adjoint) * word
+
+@dataclass(frozen=True)
+class Part:
+    """One part of a simulation's memory: what it is, the scene keys to lower, its Taichi-field and numpy bytes."""
+
+    what: str
+    lower: str
+    field_bytes: int
+    numpy_bytes: int = 0
+
+    @property
+    def bytes(self):
+        return self.field_bytes + self.numpy_bytes
+
+
+def loss_grid_shapes(loss):
+    """(res, channels, has_alpha) of each loss grid of a PositionLoss, MassLoss or ColorLoss (or None)."""
+    return [(g.res, g.target.shape[-1] if g.target.ndim == 3 else 1, g.alpha is not None)
+            for g in (loss.grids if loss is not None else ())]
+
+
+def parts(cfg, n_particles, grids=(), position_loss=False, tape=False):
+    """The parts of a Simulator's memory (tape=True: of the grad-enabled State that gradient_tape adds).
+
+    grids: (res, channels, has_alpha) of each loss grid; a grid of 3 channels is a color loss, whose
+    particles carry colours; position_loss: the particles carry target positions.
+    """
+    w = 8 if cfg.dtype == "f64" else 4
+    N, T, n, K = n_particles, cfg.steps, cfg.n_grid, cfg.n_controls
+    copies = 2 if tape else 1  # needs_grad doubles every differentiated field
+    colors = any(ch == 3 for _, ch, _ in grids)
+    out = [
+        Part(f"the particle states (x, v, C, F) of {T + 1} steps x {N} particles",
+             "sim.steps or sim.particles_per_cell",
+             copies * (T + 1) * N * 12 * w),
+        Part(f"the grid states (m, p, v) of {T} steps on the {n}^2 grid", "sim.n_grid or sim.steps",
+             copies * T * n * n * 5 * w + (0 if tape else n * n * 5 * w)),  # + the adjoint's one grid
+    ]
+    lanes = 0 if tape else cfg.lanes(N)
+    if lanes:  # forward private grids (m, p) and the adjoint's (dL/dv)
+        out.append(Part(f"the {lanes} per-thread grids of {n}^2 nodes", "sim.n_grid or sim.threads",
+                        lanes * n * n * (3 + 2) * w))
+    if grids:
+        field = numpy = 0
+        for res, ch, has_alpha in grids:
+            # m (and its grad under the Tape, else the adjoint dL/dm), target, alpha; numpy: target, alpha in f64
+            field += res * res * (3 * ch + has_alpha) * w
+            numpy += res * res * (ch + has_alpha) * F64
+        numpy += max(res * res * ch for res, ch, _ in grids) * w  # the upload's cast copy of one target
+        out.append(Part(f"the loss grids loss.grids = [{', '.join(str(r) for r, _, _ in grids)}]", "loss.grids",
+                        field, numpy))
+    per_particle = (3 * colors + 2 * position_loss) * w  # colours c_p, target positions x_pu
+    controls = K * N * 4
+    if tape:
+        field = 2 * controls * w + N * per_particle + 2 * w + 2 * I64  # F_pc and its grad, loss, faults
+        numpy = controls * (w + 2 * F64) + N * 12 * F64  # the controls' upload, the gradient, the state of step 0
+    else:
+        # F_pc, dL/dF_pc, the adjoint's two particle slots (x, v, C, F), loss, faults
+        field = 2 * controls * w + N * (24 * w + per_particle) + w + 3 * I64
+        # the caller's controls, a trial or gradient copy and the returned gradient (f64), the upload's cast copy;
+        # step 0's arrays (f64 and the cast)
+        numpy = controls * (3 * F64 + w) + N * 12 * (F64 + w)
+    out.append(Part(f"the controls ({K} x {N} particles) and adjoints", "sim.particles_per_cell or steps / sim.stride",
+                    field, numpy))
+    return out
+
+
+def estimate_bytes(cfg, n_particles, grids=(), position_loss=False, tape=False):
+    """Bytes a Simulator allocates (tape=True: what gradient_tape adds), Taichi fields and numpy copies."""
+    return sum(p.bytes for p in parts(cfg, n_particles, grids, position_loss, tape))
 
 
 def available_bytes():
@@ -24,18 +95,27 @@ def available_bytes():
     return None
 
 
-def check_memory(cfg, n_particles, grids=(), where=""):
-    """Refuse, before allocating, fields that would not fit (cfg.max_memory_gb, else 90% of what is free).
+def check_memory(cfg, n_particles, grids=(), where="", position_loss=False, tape=False):
+    """Refuse, before allocating, what would not fit (cfg.max_memory_gb, else 90% of what is free now).
 
-    grids: (res, channels, has_alpha) of each loss grid; where: a prefix naming the scene file, or "".
+    grids: (res, channels, has_alpha) of each loss grid; where: a prefix naming the scene file, or "";
+    n_particles may be an upper bound (a scene checked before its image is sampled). tape=True checks the
+    grad-enabled State of gradient_tape, on top of a Simulator already allocated.
     """
-    need = estimate_bytes(cfg, n_particles)
-    limit = cfg.max_memory_gb * 2 ** 30 if cfg.max_memory_gb else None
-    if limit is None:
+    ps = parts(cfg, n_particles, grids, position_loss, tape)
+    need = sum(p.bytes for p in ps)
+    if cfg.max_memory_gb:
+        limit = cfg.max_memory_gb * 2 ** 30
+        if tape:  # the Simulator's own fields are already allocated
+            limit -= estimate_bytes(cfg, n_particles, grids, position_loss)
+    else:
         free = available_bytes()
         limit = 0.9 * free if free else None
     if limit is not None and need > limit:
-        raise ConfigError(f"{where}the preallocated fields need about {need / 2 ** 30:.2f} GiB for {cfg.steps} steps x "
-                          f"{n_particles} particles on a {cfg.n_grid}^2 grid ({cfg.dtype}), above the limit of "
-                          f"{limit / 2 ** 30:.3g} GiB; lower sim.steps, sim.n_grid or sim.particles_per_cell, use "
-                          "dtype f32, or raise sim.max_memory_gb")
+        big = max(ps, key=lambda p: p.bytes)
+        what = "the Tape's grad-enabled fields (gradient_tape) need" if tape else "the simulation needs"
+        f32 = ", use sim.dtype = f32" if cfg.dtype == "f64" else ""
+        raise ConfigError(f"{where}{what} about {need / 2 ** 30:.2f} GiB ({cfg.steps} steps, {n_particles} "
+                          f"particles, a {cfg.n_grid}^2 grid, {cfg.dtype}), above the limit of "
+                          f"{max(limit, 0) / 2 ** 30:.3g} GiB; the largest part is {big.what} "
+                          f"({big.bytes / 2 ** 30:.2f} GiB): lower {big.lower}{f32}, or raise sim.max_memory_gb")

@@ -1,14 +1,18 @@
 """Taichi initialisation for a SimConfig: called by the CLI and by Simulator, never at import.
 
-`sim.arch` names what the user wants; Taichi silently falls back to the CPU when a backend is missing (and
-its own `gpu` choice can crash on a headless machine while probing OpenGL), so each backend is tried here in
-turn, only where its driver library exists, and a request that no backend here can serve is refused.
+One TaichiRuntime (RUNTIME) owns the process's Taichi settings (backend, float type, CPU threads) and counts
+re-initialisations, so that a Simulator built before one refuses to run instead of touching freed fields.
+
+`sim.arch` names what the user wants; Taichi silently falls back to the CPU when a backend is missing (and its
+own `gpu` choice can crash on a headless machine while probing OpenGL), so each backend is tried here in turn,
+only where its driver library exists, and a request that no backend here can serve is refused.
 """
 from __future__ import annotations
 
 import ctypes
 import glob
 import os
+from dataclasses import dataclass
 
 import taichi as ti
 from taichi.lang import impl
@@ -59,29 +63,92 @@ def _driver_present(backend: str) -> bool:
     return True
 
 
-def ensure(cfg) -> None:
-    """Initialise Taichi for cfg's arch and dtype, re-initialising when they differ.
+class StaleSimulatorError(RuntimeError):
+    """A Simulator (or its fields) outlived the Taichi runtime it was built in."""
 
-    Re-initialising frees every field, so simulators made under other settings become unusable.
-    Raises ArchError when no backend that cfg.arch allows can start here.
+
+@dataclass(frozen=True)
+class Settings:
+    """What Taichi was initialised with: the backend it runs on, the float type and the CPU threads."""
+
+    arch: str
+    dtype: str
+    threads: int
+
+    def __str__(self):
+        return f"{self.dtype} on {self.arch} with {self.threads} thread{'s' if self.threads != 1 else ''}"
+
+
+class TaichiRuntime:
+    """The one Taichi runtime of this process: its settings and a generation number.
+
+    Re-initialising Taichi frees every field, so each re-initialisation bumps `generation`; an object built
+    in an older generation (a Simulator records `generation` when it is built) refuses to run (`check`).
     """
-    want_fp = real(cfg.dtype)
-    allowed = BACKENDS[cfg.arch]
-    if impl.get_runtime().prog is not None:
-        current = impl.current_cfg()
-        if current.default_fp == want_fp and running_arch() in allowed and not current.fast_math:
-            return
-        ti.reset()
-    kwargs = dict(default_fp=want_fp, fast_math=False, offline_cache=True)
-    if cfg.threads:
-        kwargs["cpu_max_num_threads"] = cfg.threads
-    for backend in allowed:
-        if not _driver_present(backend):
-            continue
-        ti.init(arch=getattr(ti, backend), log_level=ti.ERROR, **kwargs)  # ERROR: no fallback warning
-        ti.set_logging_level(ti.WARN)
-        if running_arch() == backend:
-            return
-        ti.reset()  # Taichi fell back to the CPU
-    raise ArchError(f"sim.arch = {cfg.arch}: no {' or '.join(allowed)} device that Taichi can use on this "
-                    f"machine ({'; '.join(f'{b} needs {NEEDS[b]}' for b in allowed)}); use sim.arch = cpu")
+
+    def __init__(self):
+        self.generation = 0
+        self.settings = None
+        self._prog = None  # the Taichi program these settings describe (a ti.init elsewhere replaces it)
+
+    def current(self):
+        """Settings of the running Taichi program, or None before ti.init (or after a ti.reset elsewhere)."""
+        if impl.get_runtime().prog is None:
+            return None
+        if impl.get_runtime().prog is not self._prog:  # initialised outside ensure: read it, a new generation
+            c = impl.current_cfg()
+            self._started(Settings(running_arch(), "f64" if c.default_fp == ti.f64 else "f32",
+                                   int(c.cpu_max_num_threads)))
+        return self.settings
+
+    def _started(self, settings):
+        self.generation += 1
+        self.settings = settings
+        self._prog = impl.get_runtime().prog
+
+    def _fits(self, cfg) -> bool:
+        cur = self.current()
+        return (cur is not None and cur.dtype == cfg.dtype and cur.arch in BACKENDS[cfg.arch]
+                and (cur.arch != "cpu" or cur.threads == cfg.cpu_threads) and not impl.current_cfg().fast_math)
+
+    def ensure(self, cfg) -> int:
+        """Initialise Taichi for cfg's arch, dtype and CPU threads, re-initialising when any differs; return
+        the generation. Raises ArchError when no backend that cfg.arch allows can start here."""
+        if self._fits(cfg):
+            return self.generation
+        if impl.get_runtime().prog is not None:
+            ti.reset()
+        allowed = BACKENDS[cfg.arch]
+        threads = cfg.cpu_threads
+        kwargs = dict(default_fp=real(cfg.dtype), fast_math=False, offline_cache=True, cpu_max_num_threads=threads)
+        for backend in allowed:
+            if not _driver_present(backend):
+                continue
+            ti.init(arch=getattr(ti, backend), log_level=ti.ERROR, **kwargs)  # ERROR: no fallback warning
+            ti.set_logging_level(ti.WARN)
+            if running_arch() == backend:
+                self._started(Settings(backend, cfg.dtype, threads))
+                return self.generation
+            ti.reset()  # Taichi fell back to the CPU
+        self.settings = None
+        raise ArchError(f"sim.arch = {cfg.arch}: no {' or '.join(allowed)} device that Taichi can use on this "
+                        f"machine ({'; '.join(f'{b} needs {NEEDS[b]}' for b in allowed)}); use sim.arch = cpu")
+
+    def check(self, generation, built_for, what="this Simulator"):
+        """Raise StaleSimulatorError when Taichi was re-initialised after generation `generation`."""
+        self.current()
+        if generation != self.generation or impl.get_runtime().prog is None:
+            now = (f"re-initialised for {self.settings}" if impl.get_runtime().prog is not None else "reset")
+            raise StaleSimulatorError(f"{what} was built for {built_for}; Taichi has since been {now}, which freed "
+                                      "its fields; build a new Simulator")
+
+
+RUNTIME = TaichiRuntime()
+
+
+def ensure(cfg) -> int:
+    """Initialise Taichi for cfg (RUNTIME.ensure); return the runtime's generation.
+
+    Re-initialising frees every field: simulators made under other settings refuse to run afterwards.
+    """
+    return RUNTIME.ensure(cfg)

@@ -1,20 +1,32 @@
 """Simulator: orchestrates the forward kernels, the hand-written reverse pass and the Tape oracle."""
 
+import functools
+import math
+
 import numpy as np
 
-from adjoint.losses import seed
+from adjoint.losses import evaluate_reverse
 from adjoint.state import AdjointState
-from adjoint.step import run_reverse_serial, substep_reverse
+from adjoint.step import run_serial_reverse, substep_reverse
 
 from . import losses, runtime
 from .config import ConfigError
 from .errors import SimulationError
 from .losses import ColorLoss, PositionLoss
-from .memory import check_memory
-from .state import FAULT_LEFT_GRID, FAULT_NON_FINITE, FAULT_NONE, State, read_step, upload_loss, write_step
+from .memory import check_memory, loss_grid_shapes
+from .state import FAULT_LEFT_GRID, FAULT_NON_FINITE, FAULT_NONE, State, read_step, upload_loss, write_step, write_x
 from .step import clear_grid, run_serial, substep
 from .tape import tape_gradient
 from .transfer import check_step
+
+
+def _live(method):
+    """Refuse to run a Simulator method once Taichi was re-initialised (its fields are freed)."""
+    @functools.wraps(method)
+    def checked(self, *args, **kwargs):
+        runtime.RUNTIME.check(self._generation, self._built_for)
+        return method(self, *args, **kwargs)
+    return checked
 
 
 def _check_backend(cfg, loss):
@@ -24,6 +36,12 @@ def _check_backend(cfg, loss):
                           "use sim.dtype = f32, loss.kind = mass, or sim.arch = cpu or cuda")
 
 
+def _largest_norm(controls):
+    """The largest Frobenius norm |F_pc| over controls (K, N, 2, 2), scaled so that 1e200 does not overflow."""
+    scale = float(np.max(np.abs(controls), initial=0.0))
+    return scale * float(np.max(np.linalg.norm(controls / scale, axis=(2, 3)))) if scale > 0 else 0.0
+
+
 class Simulator:
     """A differentiable MLS-MPM simulation of N particles over cfg.steps steps.
 
@@ -31,7 +49,8 @@ class Simulator:
     """
 
     def __init__(self, cfg, x0, loss=None):
-        runtime.ensure(cfg)
+        self._generation = runtime.ensure(cfg)
+        self._built_for = str(runtime.RUNTIME.settings)
         self.cfg = cfg
         self.np_dtype = np.float64 if cfg.dtype == "f64" else np.float32
         x0 = np.asarray(x0, dtype=np.float64)
@@ -41,7 +60,7 @@ class Simulator:
         if loss is not None:
             loss.check(self.n_particles)
             _check_backend(cfg, loss)
-        check_memory(cfg, self.n_particles, grids=[(g.res, g.target.shape[-1] if g.target.ndim == 3 else 1, g.alpha is not None) for g in (loss.grids if loss else ())])
+        check_memory(cfg, self.n_particles, grids=loss_grid_shapes(loss), position_loss=isinstance(loss, PositionLoss))
         self.loss = loss
         self._serial = cfg.serial(self.n_particles)
         self.fields = State(cfg, self.n_particles, loss_grids=loss.grids if loss else (),
@@ -51,6 +70,10 @@ class Simulator:
         self._adjoint = None
         self._start = 0
         self._stop = 0
+        self._stored = 0  # stored steps 0.._stored hold one trajectory (a later forward may start there)
+        self._forward_done = False  # the stored steps are those of the last forward, which succeeded
+        self._backward_done = False  # the adjoints hold the last backward, which succeeded
+        self._control_size = 0.0  # largest |F_pc| of the last forward, for the fault hints
         self._tape_state = None  # grad-enabled fields, allocated by the first gradient_tape call
         self.set_initial(x0)
 
@@ -61,6 +84,7 @@ class Simulator:
     def zero_controls(self):
         return np.zeros(self.control_shape)
 
+    @_live
     def set_initial(self, x, v=None, C=None, F=None):
         """Set the state of step 0 (defaults: v = 0, C = 0, F = I). Used to chain animations (thesis 7.4)."""
         N = self.n_particles
@@ -75,17 +99,28 @@ class Simulator:
             raise ValueError(f"x: particle {p} at {tuple(np.round(x[p], 6))} lies outside [{lo:g}, {hi:g}) where "
                              f"its stencil fits on the {self.cfg.n_grid}x{self.cfg.n_grid} grid")
         write_step(self.fields, 0, *(a.astype(self.np_dtype) for a in (x, v, C, F)))
+        self._stored = 0
+        self._forward_done = self._backward_done = False
 
+    @_live
     def forward(self, controls, start=0):
         """Run steps start..N_t-1 with controls (K, N, 2, 2) of F_pc and return the loss of step N_t.
 
         A start > 0 reuses the stored state of step `start` from an earlier forward pass (controls
-        before it must be unchanged); backward() then stops at that step too.
+        before it must be unchanged); backward() then stops at that step too. A forward pass that raised
+        kept the steps up to its own start, so one may start there again.
         """
         if not 0 <= start < self.cfg.steps:
             raise ValueError(f"start = {start}: expected a step in [0, {self.cfg.steps})")
+        if start > self._stored:
+            raise RuntimeError(f"forward(start={start}): step {start} is not stored from a successful forward pass "
+                               f"(none yet, or the last one raised before it, or set_initial or evaluate_positions "
+                               f"replaced the states); call forward(controls) from a start of at most {self._stored}")
         controls = self._controls(controls)
         s = self.fields
+        self._forward_done = self._backward_done = False
+        self._stored = start
+        self._control_size = _largest_norm(controls)
         s.F_pc.from_numpy(controls.astype(self.np_dtype))
         s.clear_faults()
         clear_grid(s, start)
@@ -97,8 +132,12 @@ class Simulator:
         check_step(s, self.cfg.steps)
         self._raise_fault(s)
         self._start = start
-        return losses.evaluate(s, self.cfg.steps) if self.loss is not None else 0.0
+        L = losses.evaluate(s, self.cfg.steps) if self.loss is not None else 0.0
+        self._stored = self.cfg.steps
+        self._forward_done = True
+        return L
 
+    @_live
     def backward(self, stop=None):
         """dL/dF_pc (K, N, 2, 2) of the last forward pass, from the hand-written reverse kernels.
 
@@ -107,54 +146,65 @@ class Simulator:
         the same controls (as forward(start=...) requires).
         """
         self._require_loss()
+        if not self._forward_done:
+            raise RuntimeError("backward(): no successful forward pass to differentiate (none yet, or the last one "
+                               "raised, or set_initial or evaluate_positions replaced its states); call "
+                               "forward(controls) first")
         stop = self._start if stop is None else stop
         if not 0 <= stop < self.cfg.steps:
             raise ValueError(f"stop = {stop}: expected a step in [0, {self.cfg.steps})")
+        self._backward_done = False
         a = self._adjoint_state()
         a.adj_F_pc.fill(0.0)
         a.fault[None] = -1
         s = self.fields
-        seed(s, a, self.cfg.steps)
+        evaluate_reverse(s, a, self.cfg.steps)
         if self._serial:
-            run_reverse_serial(s, a, stop, self.cfg.steps)
+            run_serial_reverse(s, a, stop, self.cfg.steps)
         else:
             for f in range(self.cfg.steps - 1, stop - 1, -1):
                 substep_reverse(s, a, f)
         self._stop = stop
         fault = int(a.fault[None])
-        if fault >= 0:
-            f, p = divmod(fault, self.n_particles)
+        if fault >= 0:  # the latest step, and in it the lowest particle (stored as N - 1 - p, see adjoint.step)
+            f, q = divmod(fault, self.n_particles)
+            p = self.n_particles - 1 - q
             raise SimulationError(f"backward, step {f}: particle {p} has a non-finite adjoint (NaN or Inf); likely "
                                   "cause: a forward state near a singularity or a gradient grown too large over a "
                                   "long horizon (try fewer steps, smaller controls or optimize.clip)")
+        self._backward_done = True
         return a.adj_F_pc.to_numpy().astype(np.float64)
 
     @property
     def grad_x0(self):
         """dL/dx of the step the last backward() stopped at (step 0 by default)."""
-        return self._adjoint.adj_x.to_numpy()[self._stop % 2].astype(np.float64)
+        return self._initial_adjoint("grad_x0", "adj_x")
 
     @property
     def grad_v0(self):
         """dL/dv of the step the last backward() stopped at (step 0 by default)."""
-        return self._adjoint.adj_v.to_numpy()[self._stop % 2].astype(np.float64)
+        return self._initial_adjoint("grad_v0", "adj_v")
 
+    @_live
     def evaluate_positions(self, x):
         """Loss and dL/dx_p (eq 42-43) for final positions x (N, 2) placed at step N_t, without physics.
 
-        The `positions` study of thesis 8.1 follows this gradient; it overwrites the stored step N_t.
+        The `positions` study of thesis 8.1 follows this gradient; it overwrites the stored x of step N_t
+        (so backward() needs a new forward pass afterwards).
         """
         self._require_loss()
         x = self._particle_array(x, "x", (self.n_particles, 2))
         s = self.fields
         T = self.cfg.steps
-        last = self.state(T)
-        write_step(s, T, x.astype(self.np_dtype), *(last[k].astype(self.np_dtype) for k in ("v", "C", "F")))
+        self._forward_done = self._backward_done = False
+        self._stored = min(self._stored, T - 1)
+        write_x(s, T, x.astype(self.np_dtype))
         L = losses.evaluate(s, T)
         a = self._adjoint_state()
-        seed(s, a, T)
+        evaluate_reverse(s, a, T)
         return L, a.adj_x.to_numpy()[T % 2].astype(np.float64)
 
+    @_live
     def state(self, n):
         """Particle state of stored step n as numpy arrays."""
         if not 0 <= n <= self.cfg.steps:
@@ -165,18 +215,29 @@ class Simulator:
         read_step(self.fields, n, out["x"], out["v"], out["C"], out["F"])
         return {k: a.astype(np.float64) for k, a in out.items()}
 
+    @_live
     def gradient_tape(self, controls, validation=False):
         """The same gradient as backward(), through ti.ad.Tape on the same forward kernels (a test oracle).
 
-        Allocates a second, grad-enabled copy of the fields on first call.
+        Allocates a second, grad-enabled copy of the fields on first call (refused first if it would not fit).
         """
         self._require_loss()
         controls = self._controls(controls)
+        if self._tape_state is None:
+            check_memory(self.cfg, self.n_particles, grids=loss_grid_shapes(self.loss),
+                         position_loss=isinstance(self.loss, PositionLoss), tape=True)
         _, grad, self._tape_state = tape_gradient(self.cfg, self.state(0), self.loss, controls, validation,
                                                   self._tape_state)
         return grad
 
     # helpers
+    def _initial_adjoint(self, name, field):
+        runtime.RUNTIME.check(self._generation, self._built_for)
+        if not self._backward_done:
+            raise RuntimeError(f"{name}: no successful backward pass (none yet, it raised, or a forward pass ran "
+                               "since); call backward() after forward(controls) first")
+        return getattr(self._adjoint, field).to_numpy()[self._stop % 2].astype(np.float64)
+
     def _adjoint_state(self):
         if self._adjoint is None:
             self._adjoint = AdjointState(self.fields, runtime.real(self.cfg.dtype))
@@ -212,14 +273,37 @@ class Simulator:
 
     def _raise_fault(self, s):
         fault = s.fault.to_numpy()
-        causes = {
-            FAULT_LEFT_GRID: "left the simulation grid (its 4x4 stencil would index outside it); likely cause: "
-                             "controls or velocities too large for dt, or walls (bound) too thin",
-            FAULT_NON_FINITE: "has a non-finite state (NaN or Inf); likely cause: dt above the CFL limit "
-                              f"{self.cfg.cfl_dt:.3g} for this E, nu and density, or a singular control",
-        }
         hits = [(int(fault[k]) // self.n_particles, k, int(fault[k]) % self.n_particles)
-                for k in causes if fault[k] != FAULT_NONE]
+                for k in (FAULT_LEFT_GRID, FAULT_NON_FINITE) if fault[k] != FAULT_NONE]
         if hits:
             f, k, p = min(hits)
-            raise SimulationError(f"step {f}: particle {p} {causes[k]}")
+            raise SimulationError(f"step {f}: particle {p} {self._fault_cause(k, f, p)}")
+
+    def _fault_cause(self, kind, f, p):
+        """What went wrong with particle p at step f, and the likely cause the settings point to."""
+        cfg = self.cfg
+        cell_speed = cfg.dx / cfg.dt  # one cell per step
+        g = math.hypot(*cfg.gravity)
+        causes = []
+        if cfg.dt > cfg.cfl_dt:
+            causes.append(f"dt = {cfg.dt:.6g} above the CFL limit {cfg.cfl_dt:.6g} for this E, nu and density "
+                          "(lower sim.dt)")
+        if g * max(f, 1) * cfg.dt > cell_speed:
+            causes.append(f"gravity: |g| = {g:.3g} for {max(f, 1)} steps gives a speed of "
+                          f"{g * max(f, 1) * cfg.dt:.3g}, "
+                          f"above dx / dt = {cell_speed:.3g} (one cell per step; lower sim.gravity or sim.dt)")
+        if self._control_size > 0.5:
+            causes.append(f"controls up to |F_pc| = {self._control_size:.3g}, enough to make F + F_pc singular "
+                          "(use smaller controls or optimize.clip)")
+        if kind == FAULT_LEFT_GRID:
+            v = self.fields.v[f, p]
+            speed = math.hypot(float(v[0]), float(v[1]))
+            if not causes:
+                causes.append(f"its speed {speed:.3g} at step {f} against dx / dt = {cell_speed:.3g} (one cell per "
+                              "step): controls or velocities too large for dt, or walls (bound) too thin")
+            return ("left the simulation grid (its 4x4 stencil would index outside it); likely cause: "
+                    + "; and ".join(causes))
+        if not causes:
+            causes.append(f"a singular control or a state grown too large (dt = {cfg.dt:.3g} is below the CFL "
+                          f"limit {cfg.cfl_dt:.3g}, gravity and controls are moderate)")
+        return "has a non-finite state (NaN or Inf); likely cause: " + "; and ".join(causes)

@@ -1,4 +1,4 @@
-"""Preallocated fields of one simulation: every step's particle and grid state (STYLE 2)."""
+"""Preallocated fields of one simulation: every step's particle and grid state, time an explicit axis."""
 
 import numpy as np
 import taichi as ti
@@ -64,6 +64,9 @@ class State:
         self.bound = cfg.bound
         self.stride = cfg.stride
         self.n_controls = cfg.n_controls
+        # the loss kernels' loops run serially on a CPU, so that their sums have one order (a bit-identical loss
+        # and gradient run after run); on a GPU they stay parallel
+        self.serial_losses = cfg.arch == "cpu"
         # lanes > 0: P2G scatters into `lanes` private grids, one per CPU thread, summed by the grid loop
         # (no float atomics); 0: atomic adds straight into grid f (GPUs, the serial schedule, the Tape)
         self.lanes = lanes
@@ -86,7 +89,7 @@ class State:
             self.lane_m = ti.field(dt_, shape=(lanes, n, n))  # private node mass of one thread
             self.lane_p = ti.Vector.field(2, dt_, shape=(lanes, n, n))  # private node momentum of one thread
         self.loss = ti.field(dt_, shape=(), needs_grad=g)
-        self.fault = ti.field(ti.i64, shape=2)  # first faulty f * N + p per FAULT_* kind
+        self.fault = ti.field(ti.i64, shape=2)  # least faulty f * N + p per FAULT_* kind
         self.has_colors = colors
         if colors:
             self.color = ti.Vector.field(3, dt_, shape=N)  # particle RGB c_p (eq 12)
@@ -126,6 +129,14 @@ def write_step(s: ti.template(), f: ti.i32, x: ti.types.ndarray(), v: ti.types.n
             for e in ti.static(range(2)):
                 s.C[f, p][d, e] = C[p, d, e]
                 s.F[f, p][d, e] = F[p, d, e]
+
+
+@ti.kernel
+def write_x(s: ti.template(), f: ti.i32, x: ti.types.ndarray()):
+    """Replace the positions of step f alone."""
+    for p in range(s.n_particles):
+        for d in ti.static(range(2)):
+            s.x[f, p][d] = x[p, d]
 
 
 @ti.kernel

@@ -7,7 +7,7 @@ inputs, with w put in the AdjointState as the upstream adjoint dL/dy. Every inpu
 Tape to a symmetric relative error of at most 1e-8 (both are exact in exact arithmetic; float64 round-off
 through one kernel stays near 1e-14).
 
-Reverse kernels accumulate (+=) into adjoints they share with other kernels (STYLE 4), so those adjoints are
+Reverse kernels accumulate (+=) into adjoints they share with other kernels, so those adjoints are
 prefilled with random values b and the test compares (result - b) with the Tape.
 
 Tape(validation=True) is not used here: Taichi only checks the global data access rule under
@@ -19,15 +19,17 @@ import pytest
 import taichi as ti
 
 from adjoint.grid import grid_op_reverse
-from adjoint.losses import grid_loss_reverse, position_loss_reverse, seed, splat_reverse
+from adjoint.losses import evaluate_reverse, grid_loss_reverse, position_loss_reverse, splat_reverse
 from adjoint.material import stress_reverse
-from adjoint.state import AdjointState
+from adjoint.state import AdjointState, zero_step
+from adjoint.step import run_serial_reverse, substep_reverse
 from adjoint.transfer import g2p_reverse, p2g_reverse
 from conftest import max_rel_err, rel_err
 from mls_mpm import ColorLoss, MassLoss, SimConfig, losses
 from mls_mpm.grid import grid_op
 from mls_mpm.material import stress
 from mls_mpm.state import State
+from mls_mpm.step import run_serial, substep
 from mls_mpm.transfer import g2p, p2g
 
 pytestmark = pytest.mark.usefixtures("taichi_f64_module")
@@ -153,7 +155,8 @@ def grid_pair(request):
 @pytest.mark.parametrize("f", [CONTROL_STEP, PLAIN_STEP])
 @pytest.mark.parametrize("which", ["x", "v", "C", "F", "x v C F"])
 def test_g2p_reverse_matches_tape(pair, f, which):
-    """g2p_reverse (eq 47-48, 57 first term, 66-69) vs Tape on g2p (eq 18-21): rel err <= 1e-8.
+    """g2p_reverse (g2p_particle_reverse on every particle; eq 47-48, 57 first term, 66-69) vs Tape on g2p
+    (eq 18-21): rel err <= 1e-8.
 
     dL/dv_i^f, dL/dx_p^f and dL/d(F + F_pc)_p^f from dL/d(x, v, C, F)^{f+1}; each output alone, then all.
     g2p reads neither v^f nor C^f, so adj_v, adj_C of step f must stay as they were.
@@ -218,7 +221,8 @@ def grid_inputs(cfg, rng):
 
 @pytest.mark.parametrize("f", [0, 2])
 def test_grid_op_reverse_matches_tape(grid_pair, f):
-    """grid_op_reverse (eq 49-53, gravity, walls) vs Tape on grid_op (eq 17): per-node rel err <= 1e-8.
+    """grid_op_reverse (grid_op_node_reverse on every node; eq 49-53, gravity, walls) vs Tape on grid_op (eq 17):
+    per-node rel err <= 1e-8.
 
     Covers wall-zone nodes (bound = 3 of 16 per side; slip masks one component, sticky both), empty nodes
     (divisor m_eps alone, checked in closed form too) and nodes of mass 5e-11 and 3e-10 m_p (adjoints ~ 1/m,
@@ -273,7 +277,8 @@ def test_grid_op_reverse_matches_tape(grid_pair, f):
 @pytest.mark.parametrize("f", [CONTROL_STEP, PLAIN_STEP])
 @pytest.mark.parametrize("which", ["m", "p", "m p"])
 def test_p2g_reverse_matches_tape(pair, f, which):
-    """p2g_reverse (eq 54-65, 71) vs Tape on p2g (eq 14-16, drag gamma dt = 0.08): rel err <= 1e-8.
+    """p2g_reverse (p2g_particle_reverse on every particle; eq 54-65, 71) vs Tape on p2g (eq 14-16, drag
+    gamma dt = 0.08): rel err <= 1e-8.
 
     dL/d(x, v, C, F)_p^f from dL/dm_i, dL/dp_i; at a control step (f = 2, k = 1) also dL/dF_pc^k, which
     p2g_reverse forms as dL/dF_pc^k += dL/dF_p^f (eq 55) after adding its own part to dL/dF_p^f.
@@ -317,6 +322,110 @@ def test_p2g_reverse_matches_tape(pair, f, which):
         assert np.all(got_F_pc[others] == 0.0)
     else:
         assert np.all(tape_F_pc == 0.0) and np.all(got_F_pc == 0.0)
+
+
+# ------------------------------------------------------------------ one whole reverse step, both schedules
+LANES = 2
+
+
+class StepPair(Pair):
+    """A Pair whose plain State runs the production step: with LANES private grids per thread, or serially."""
+
+    def __init__(self, cfg, lanes):
+        super().__init__(cfg)
+        self.s = State(cfg, self.N, lanes=lanes)
+        self.a = AdjointState(self.s, ti.f64)
+
+
+@pytest.fixture(scope="module")
+def step_pairs():
+    cfg = SimConfig(**KERNEL_CFG)
+    return {"parallel": StepPair(cfg, LANES), "serial": StepPair(cfg, 0)}
+
+
+def run_step_pair(pair, f, w, upstream_nan=()):
+    """Tape over step f (p2g, grid_op, g2p) and the production reverse step on the same inputs and upstream w.
+
+    Returns the Tape's dL/d(x, v, C, F)^f and dL/dF_pc. The upstream of the particles in upstream_nan is NaN.
+    """
+    t, s, a = pair.t, pair.s, pair.a
+    for st in (t, s):
+        st.grid_m.fill(0.0)
+        st.grid_p.fill(0.0)
+    with ti.ad.Tape(loss=t.loss):
+        p2g(t, f)
+        grid_op(t, f)
+        g2p(t, f)
+        particle_functional(t, w, f + 1)
+    tape = tape_grads(t, PARTICLE_FIELDS, f)
+    tape["F_pc"] = t.F_pc.grad.to_numpy()
+    if s.lanes:
+        substep(s, f)  # the reverse step reads the forward's stored C^{f+1} (eq 57) and grid v^f
+    else:
+        run_serial(s, f, f + 1)
+    zero_step(s, a, f)
+    a.adj_F_pc.fill(0.0)
+    a.fault[None] = -1
+    src = (f + 1) % 2
+    for name in PARTICLE_FIELDS:
+        up = np.zeros((2,) + w.np[name].shape)
+        up[src] = w.np[name]
+        up[src, list(upstream_nan)] = np.nan
+        getattr(a, "adj_" + name).from_numpy(up)
+    if s.lanes:
+        substep_reverse(s, a, f)
+    else:
+        run_serial_reverse(s, a, f, f + 1)
+    return tape
+
+
+@pytest.mark.parametrize("schedule", ["parallel", "serial"])
+@pytest.mark.parametrize("f", [CONTROL_STEP, PLAIN_STEP])
+def test_step_reverse_matches_tape(step_pairs, schedule, f):
+    """One reverse step of the production driver vs Tape on p2g, grid_op, g2p of that step: rel err <= 1e-8.
+
+    parallel: substep_reverse (step_loops_reverse: g2p_particle_reverse into LANES private grids, summed by
+    gather_lanes_reverse in grid_node_reverse, then p2g_particle_reverse and check_particle_reverse);
+    serial: run_serial_reverse over [f, f + 1). dL/d(x, v, C, F)^f and dL/dF_pc (eq 47-71); afterwards the
+    consumed adjoints of step f + 1, dL/dv_i and the private grids are zero, and no fault is recorded.
+    """
+    pair = step_pairs[schedule]
+    rng = np.random.default_rng(300 + f)
+    pair.randomize(rng)
+    w = pair.upstream.draw(rng, list(PARTICLE_FIELDS))
+    tape = run_step_pair(pair, f, w)
+    a, dst = pair.a, f % 2
+    for name in PARTICLE_FIELDS:
+        got = getattr(a, "adj_" + name).to_numpy()
+        assert rel_err(got[dst], tape[name]) <= TOL, name
+        assert np.all(got[1 - dst] == 0.0), name  # consumed and zeroed
+    assert rel_err(a.adj_F_pc.to_numpy(), tape["F_pc"]) <= TOL
+    assert (f % pair.cfg.stride == 0) == np.any(tape["F_pc"] != 0.0)
+    assert np.all(a.adj_grid_v.to_numpy() == 0.0)
+    if pair.s.lanes:
+        assert np.all(a.lane_adj_v.to_numpy() == 0.0)
+    assert a.fault[None] == -1
+
+
+@pytest.mark.parametrize("schedule", ["parallel", "serial"])
+def test_reverse_fault_names_the_lowest_particle(step_pairs, schedule):
+    """record_fault_reverse keeps, in the latest reverse step, the lowest particle whose adjoint is non-finite,
+    whatever the parallel order: NaN upstream on particles 30 and 9 spreads through the grid to their
+    neighbours; the fault code must name the lowest index among all particles left non-finite."""
+    pair = step_pairs[schedule]
+    f = PLAIN_STEP
+    rng = np.random.default_rng(400)
+    pair.randomize(rng)
+    w = pair.upstream.draw(rng, list(PARTICLE_FIELDS))
+    run_step_pair(pair, f, w, upstream_nan=(30, 9))
+    a, dst, N = pair.a, f % 2, pair.N
+    bad = np.zeros(N, bool)
+    for name in PARTICLE_FIELDS:
+        adj = getattr(a, "adj_" + name).to_numpy()[dst].reshape(N, -1)
+        bad |= ~np.all(np.isfinite(adj), axis=1)
+    assert bad[9] and bad[30] and bad.sum() > 2
+    lowest = int(np.flatnonzero(bad)[0])
+    assert a.fault[None] == f * N + (N - 1 - lowest)
 
 
 # ------------------------------------------------------------------ dP/dF contraction
@@ -502,8 +611,8 @@ def test_position_loss_seed_matches_tape(loss_pair):
 
 
 def test_seed_sums_every_loss_and_zeroes_the_rest(loss_pair):
-    """seed() zeroes both particle slots and dL/dv_i, then sums every grid's and the position term's dL/dx
-    (eq 41-43, 10); dL/dv, dL/dF, dL/dC of step N_t are zero (eq 44-46). Rel err <= 1e-8 against one Tape of
+    """evaluate_reverse() (the loss seed, twin of losses.evaluate) zeroes both particle slots and dL/dv_i, then
+    sums every grid's and the position term's dL/dx (eq 41-43, 10); dL/dv, dL/dF, dL/dC of step N_t are zero (eq 44-46). Rel err <= 1e-8 against one Tape of
     the full loss; the other slot, where reverse step N_t - 1 accumulates, must be exactly zero."""
     pair, f = loss_pair, 3
     tape_x, _ = run_loss_tape(pair, f, range(len(LOSS_GRIDS)), position=True)
@@ -515,7 +624,7 @@ def test_seed_sums_every_loss_and_zeroes_the_rest(loss_pair):
                      {"adj_x": np.ones((2, pair.N, 2)), "adj_v": np.ones((2, pair.N, 2)),
                       "adj_C": np.ones((2, pair.N, 2, 2)), "adj_F": np.ones((2, pair.N, 2, 2)),
                       "adj_grid_v": np.ones((pair.n, pair.n, 2))})
-    seed(s, a, f)
+    evaluate_reverse(s, a, f)
     slot = f % 2
     assert rel_err(a.adj_x.to_numpy()[slot], tape_x) <= TOL
     assert np.all(a.adj_x.to_numpy()[1 - slot] == 0.0)

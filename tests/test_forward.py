@@ -252,6 +252,19 @@ def test_particle_leaving_the_grid_raises(schedule):
         sim.forward(sim.zero_controls())
 
 
+def test_fault_hint_names_gravity_not_the_cfl():
+    """dt well below the CFL limit, no controls, gravity 1e300: the particles blow up (or leave the grid) at step
+    1, and the hint names gravity, with its numbers, instead of blaming the CFL condition."""
+    cfg = scene_config(n_grid=16, steps=3, stride=3, gravity=(0.0, -1e300), schedule="serial")
+    sim = mls_mpm.Simulator(cfg, blob(n_grid=16, radius=0.15))
+    with pytest.raises(mls_mpm.SimulationError) as e:
+        sim.forward(sim.zero_controls())
+    msg = str(e.value)
+    assert msg.startswith("step 1: particle "), msg
+    assert "likely cause: gravity: |g| = 1e+300 for 1 steps gives a speed of 1e+297, above dx / dt = 62.5" in msg
+    assert "CFL" not in msg and "\n" not in msg
+
+
 def test_nan_control_raises(free_sim):
     """A NaN in F_pc is refused before any step runs: ValueError naming the control (and its step) and the
     particle."""
@@ -278,15 +291,28 @@ def test_nan_control_raises(free_sim):
     (dict(n_grid=9, bound=3), "n_grid"),
     (dict(boundary="periodic"), "boundary"),
     (dict(E=0.0), "E"),
+    (dict(particles_per_cell=10 ** 30), "particles_per_cell"),
+    (dict(threads=10 ** 30), "threads"),
+    (dict(threads=-1), "threads"),
 ])
 def test_config_rejects_bad_values(change, name):
     """SimConfig refuses values the simulator cannot use, with a ConfigError naming the setting:
     steps = 0, dt <= 0 or NaN, nu outside [0, 0.5), gamma dt >= 1 (eq 16's factor 1 - dt gamma would flip sign),
-    stride > steps, n_grid < 2 bound + 4 (no node outside the walls for a 4x4 stencil)."""
+    stride > steps, n_grid below config.min_n_grid(bound) (too few nodes inside the walls for a 4x4 stencil),
+    particles_per_cell above MAX_PARTICLES_PER_CELL and threads above MAX_THREADS (10**30 would reach the
+    allocator or Taichi)."""
     with pytest.raises(mls_mpm.ConfigError, match=f"^{name} = "):
         mls_mpm.SimConfig(**{**dict(n_grid=32, steps=30, dt=1e-3, E=100.0), **change})
 
 
 def test_config_accepts_the_limits():
     """The boundary values just inside the limits are accepted (a refusal off by one would show here)."""
-    mls_mpm.SimConfig(n_grid=10, bound=3, steps=30, stride=30, dt=1e-3, E=100.0, nu=0.0, gamma=999.0)
+    from mls_mpm.config import MAX_PARTICLES_PER_CELL, MAX_THREADS, min_n_grid
+    mls_mpm.SimConfig(n_grid=min_n_grid(3), bound=3, steps=30, stride=30, dt=1e-3, E=100.0, nu=0.0, gamma=999.0)
+    with pytest.raises(mls_mpm.ConfigError, match=rf"^n_grid = {min_n_grid(3) - 1}: expected an integer >= "):
+        mls_mpm.SimConfig(n_grid=min_n_grid(3) - 1, bound=3, steps=30, stride=30, dt=1e-3, E=100.0)
+    mls_mpm.SimConfig(n_grid=32, steps=30, dt=1e-3, E=100.0, particles_per_cell=MAX_PARTICLES_PER_CELL,
+                      threads=MAX_THREADS)
+    with pytest.raises(mls_mpm.ConfigError, match=rf"^threads = {MAX_THREADS + 1}: expected an integer in "
+                                                  rf"\[0, {MAX_THREADS}\]$"):
+        mls_mpm.SimConfig(threads=MAX_THREADS + 1)

@@ -197,6 +197,68 @@ def test_restart_reproduces_loss_and_gradient(problems, start):
     assert np.all(g_restart[~later] == 0.0) and np.any(g[~later] != 0.0)
 
 
+def test_backward_needs_a_successful_forward():
+    """backward() before any forward() raised nothing and returned zeros; grad_x0 / grad_v0 before backward()
+    raised AttributeError on None. Now each is one RuntimeError saying what to call; so is forward(start=k)
+    when step k was never stored. (Refused before any kernel runs: this Simulator compiles nothing.)"""
+    cfg = scene_config()
+    sim = mls_mpm.Simulator(cfg, blob(), loss=mls_mpm.MassLoss([disk_mass(32, (0.5, 0.5), 0.1)]))
+    with pytest.raises(RuntimeError,
+                       match=r"^backward\(\): no successful forward pass .*; call forward\(controls\) first$"):
+        sim.backward()
+    for name in ("grad_x0", "grad_v0"):
+        with pytest.raises(RuntimeError, match=rf"^{name}: no successful backward pass .*; call backward\(\) after "
+                                               r"forward\(controls\) first$"):
+            getattr(sim, name)
+    with pytest.raises(RuntimeError, match=r"^forward\(start=10\): step 10 is not stored .* at most 0$"):
+        sim.forward(sim.zero_controls(), start=10)
+
+
+def test_a_failed_forward_is_not_differentiated(problems):
+    """After a forward that raised, backward() is refused, and so is a restart after the failed pass's own start;
+    a restart at or before that start is exact (its stored steps are intact), and so is a full forward."""
+    sim, _, c = problems["position"]
+    L = sim.forward(c)
+    g = sim.backward()
+    bad = c.copy()
+    bad[2, 7] = 1e200 * np.eye(2)  # control 2 acts at step 20: P2G's stress overflows there
+    with pytest.raises(mls_mpm.SimulationError, match="^step 20: particle 7 "):
+        sim.forward(bad, start=10)
+    with pytest.raises(RuntimeError, match=r"^backward\(\): no successful forward pass"):
+        sim.backward()
+    for name in ("grad_x0", "grad_v0"):
+        with pytest.raises(RuntimeError, match=rf"^{name}: no successful backward pass"):
+            getattr(sim, name)
+    with pytest.raises(RuntimeError, match=r"^forward\(start=17\): step 17 is not stored .* at most 10$"):
+        sim.forward(c, start=17)
+    assert sim.forward(c, start=10) == L  # steps 0..10 were kept
+    later = np.arange(sim.cfg.n_controls) * sim.cfg.stride >= 10
+    assert np.array_equal(sim.backward()[later], g[later])
+    with pytest.raises(mls_mpm.SimulationError):
+        sim.forward(bad)
+    with pytest.raises(RuntimeError, match=r"^forward\(start=10\): step 10 is not stored .* at most 0$"):
+        sim.forward(c, start=10)
+    assert sim.forward(c) == L and np.array_equal(sim.backward(), g)
+
+
+def test_evaluate_positions_writes_only_x(problems):
+    """evaluate_positions places x at step N_t and leaves v, C, F of that step as they were (it rewrote all
+    four); the stored trajectory no longer ends where the forward pass left it, so backward() is refused."""
+    sim, x0, c = problems["position"]
+    T = sim.cfg.steps
+    sim.forward(c)
+    before = sim.state(T)
+    x = before["x"] + 0.01
+    sim.evaluate_positions(x)
+    after = sim.state(T)
+    assert np.array_equal(after["x"], x)
+    for key in ("v", "C", "F"):
+        assert np.array_equal(after[key], before[key]), key
+    with pytest.raises(RuntimeError, match=r"^backward\(\): no successful forward pass"):
+        sim.backward()
+    sim.forward(c)
+
+
 def test_parallel_schedule_matches_serial(problems):
     """schedule = "parallel" (one launch per step; on a CPU each thread scatters P2G and reverse G2P into its
     own private grid, summed by the grid loop) vs the serial schedule of the same scene: same final state and
