@@ -50,3 +50,15 @@ def node_weight(w, dw, offset, inv_dx):
 def inside(base, n) -> ti.i32:
     """Whether the whole 4x4 stencil from base lies on an n x n grid."""
     return base[0] >= 0 and base[1] >= 0 and base[0] <= n - STENCIL and base[1] <= n - STENCIL
+
+
+@ti.func
+def splat_particle(grid: ti.template(), X, inv_dx, value):
+    """P2G of one particle's value (m_p, eq 15, or m_p c_p, eq 12) onto the 4x4 nodes around X:
+    grid[i] += N(x_i - X) value, nodes off the grid dropped (a loss grid's nodes beyond the domain)."""
+    base, fx = stencil(X, inv_dx)
+    w, _ = weights(fx)
+    for i, j in ti.static(ti.ndrange(STENCIL, STENCIL)):
+        I = base + ti.Vector([i, j])
+        if 0 <= I[0] < grid.shape[0] and 0 <= I[1] < grid.shape[1]:
+            grid[I] += w[i, 0] * w[j, 1] * value

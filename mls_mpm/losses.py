@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 import taichi as ti
 
-from .kernels import stencil, weights
+from .kernels import splat_particle
 from .errors import UserError
 
 
@@ -125,13 +125,7 @@ def splat(s: ti.template(), g: ti.template(), f: ti.i32):
     """P2G of particle mass (or color-mass) of step f onto loss grid g, with g's own dx."""
     ti.loop_config(serialize=s.serial_losses)
     for p in range(s.n_particles):
-        base, fx = stencil(s.x[f, p], g.inv_dx)
-        w, _ = weights(fx)
-        value = splat_value(s, g, p)
-        for i, j in ti.static(ti.ndrange(4, 4)):
-            I = base + ti.Vector([i, j])
-            if 0 <= I[0] < g.res and 0 <= I[1] < g.res:  # a loss grid's nodes beyond the domain are dropped
-                g.m[I] += w[i, 0] * w[j, 1] * value
+        splat_particle(g.m, s.x[f, p], g.inv_dx, splat_value(s, g, p))  # nodes beyond the domain dropped
 
 
 @ti.func

@@ -50,7 +50,7 @@ def render_run(out_dir, mode=None, size=None, every=None, arch=None, emit=print,
                          (("mode", mode), ("size", size), ("every", every)))
     cfg = config_of(settings, arch)
     controls = arrays["controls"]
-    n_rounds, N = controls.shape[0], controls.shape[2]
+    N = controls.shape[2]
     outline = arrays["target_grid"] if rs.get("outline", False) else None
     _check_memory(cfg, N, size, mode, None if outline is None else len(outline), size_named)
     emit(f"rendering scene {settings['scene']['name']} from {out / 'result.npz'}")

@@ -13,7 +13,7 @@ import numpy as np
 import taichi as ti
 from taichi.lang import impl
 
-from .kernels import STENCIL, stencil, weights
+from .kernels import STENCIL, splat_particle, stencil, weights
 
 
 def real_dtype():
@@ -50,18 +50,6 @@ def clear(grid: ti.template()):
     """Zero a scalar or vector field (a parallel loop of the calling kernel)."""
     for I in ti.grouped(grid):
         grid[I] = ti.zero(grid[I])
-
-
-@ti.func
-def splat_particle(grid: ti.template(), X, inv_dx, value):
-    """P2G of one particle's value (m_p, eq 15, or m_p c_p, eq 12) onto the 4x4 nodes around X:
-    grid[i] += N(x_i - X) value, nodes off the grid dropped (a loss grid's nodes beyond the domain)."""
-    base, fx = stencil(X, inv_dx)
-    w, _ = weights(fx)
-    for i, j in ti.static(ti.ndrange(STENCIL, STENCIL)):
-        I = base + ti.Vector([i, j])
-        if 0 <= I[0] < grid.shape[0] and 0 <= I[1] < grid.shape[1]:
-            grid[I] += w[i, 0] * w[j, 1] * value
 
 
 @ti.func

@@ -2,20 +2,17 @@
 and the same refusal at the function level: scene files, images, memory before sampling, `check` options.
 Also `check`'s round-off floor (a single particle's gradient of 1e-19 against a finite difference of 0)."""
 import argparse
-import json
 import os
 import re
 from pathlib import Path
 
-import numpy as np
 import pytest
-from PIL import Image
 
-from mls_mpm import check, memory, problem
-from mls_mpm.check import CheckError, Comparison, check_options, check_scene
+from mls_mpm import memory, problem
+from mls_mpm.check import CheckError, Comparison, check_scene
 from mls_mpm.cli import main
 from mls_mpm.errors import UserError
-from mls_mpm.scene import SceneError, load_scene
+from mls_mpm.scene import load_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ROOT / "tests" / "data" / "tiny.toml"
