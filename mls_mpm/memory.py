@@ -95,6 +95,15 @@ def available_bytes():
     return None
 
 
+def limit(cfg):
+    """(bytes, words) a run may allocate: sim.max_memory_gb when set, else 90% of the memory available now;
+    (None, "") where that is unknown. The one rule for the simulation, the scene's sampling and the renderer."""
+    if cfg.max_memory_gb:
+        return cfg.max_memory_gb * 2 ** 30, f"sim.max_memory_gb = {cfg.max_memory_gb:g}"
+    free = available_bytes()
+    return (0.9 * free, "90% of the memory available; sim.max_memory_gb sets it") if free else (None, "")
+
+
 def check_memory(cfg, n_particles, grids=(), where="", position_loss=False, tape=False):
     """Refuse, before allocating, what would not fit (cfg.max_memory_gb, else 90% of what is free now).
 
@@ -104,18 +113,14 @@ def check_memory(cfg, n_particles, grids=(), where="", position_loss=False, tape
     """
     ps = parts(cfg, n_particles, grids, position_loss, tape)
     need = sum(p.bytes for p in ps)
-    if cfg.max_memory_gb:
-        limit = cfg.max_memory_gb * 2 ** 30
-        if tape:  # the Simulator's own fields are already allocated
-            limit -= estimate_bytes(cfg, n_particles, grids, position_loss)
-    else:
-        free = available_bytes()
-        limit = 0.9 * free if free else None
-    if limit is not None and need > limit:
+    allowed, _ = limit(cfg)
+    if allowed is not None and cfg.max_memory_gb and tape:  # the Simulator's own fields are already allocated
+        allowed -= estimate_bytes(cfg, n_particles, grids, position_loss)
+    if allowed is not None and need > allowed:
         big = max(ps, key=lambda p: p.bytes)
         what = "the Tape's grad-enabled fields (gradient_tape) need" if tape else "the simulation needs"
         f32 = ", use sim.dtype = f32" if cfg.dtype == "f64" else ""
         raise ConfigError(f"{where}{what} about {need / 2 ** 30:.2f} GiB ({cfg.steps} steps, {n_particles} "
                           f"particles, a {cfg.n_grid}^2 grid, {cfg.dtype}), above the limit of "
-                          f"{max(limit, 0) / 2 ** 30:.3g} GiB; the largest part is {big.what} "
+                          f"{max(allowed, 0) / 2 ** 30:.3g} GiB; the largest part is {big.what} "
                           f"({big.bytes / 2 ** 30:.2f} GiB): lower {big.lower}{f32}, or raise sim.max_memory_gb")

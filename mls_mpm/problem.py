@@ -134,18 +134,10 @@ def target_grid_bytes(ls) -> int:
     return sum(res * res * words * WORD for res in ls.grids)
 
 
-def _memory_limit(cfg):
-    """(bytes, words): sim.max_memory_gb, else 90% of the memory available; (None, "") where unknown."""
-    if cfg.max_memory_gb:
-        return cfg.max_memory_gb * 2 ** 30, f"sim.max_memory_gb = {cfg.max_memory_gb:g}"
-    free = memory.available_bytes()
-    return (0.9 * free, "90% of the memory available; sim.max_memory_gb sets it") if free else (None, "")
-
-
 def _check_memory(scene, images, particles):
     """Refuse, naming the largest part's key, when the decoded images (key -> bytes), the sampled particles
     (an upper bound of their number) and the numpy target grids would not fit."""
-    limit, words = _memory_limit(scene.sim)
+    limit, words = memory.limit(scene.sim)
     if limit is None:
         return
     ls, cfg = scene.loss, scene.sim

@@ -106,11 +106,7 @@ def _check_memory(cfg, n_particles, size, mode, target_res, what):
     sim.max_memory_gb when set, else 90% of the memory free now (as memory.check_memory for the simulation)."""
     need = estimate_bytes(cfg.n_grid, n_particles, size, mode, 8 if cfg.dtype == "f64" else 4, target_res)
     sim = memory.estimate_bytes(cfg, n_particles)
-    if cfg.max_memory_gb:
-        limit, of = cfg.max_memory_gb * 2 ** 30, "sim.max_memory_gb"
-    else:
-        free = memory.available_bytes()
-        limit, of = (0.9 * free, "90% of the free memory") if free else (None, "")
+    limit, of = memory.limit(cfg)
     if limit is not None and need + sim > limit:
         raise RenderError(f"{what}: the renderer needs about {need / 2 ** 30:.2f} GiB beside the simulation's "
                           f"{sim / 2 ** 30:.2f} GiB, above the limit of {limit / 2 ** 30:.2f} GiB ({of}); "
