@@ -27,6 +27,7 @@ TWINS = {
     "losses": {
         "splat": "eq 42-43",
         "grid_loss": "eq 41, 72",
+        "ot_loss": "dS/dm_i from the Sinkhorn potentials (mls_mpm/ot.py), in place of eq 41",
         "position_loss": "eq 10",
         "evaluate": "eq 41-46",
     },
@@ -59,6 +60,7 @@ NO_TWIN = {
         "splat_value": "constant in x: splat_reverse reads it",
         "node_residual": "differentiated inline by grid_loss_reverse (eq 41; log mass: 1 / (m_i + 1))",
         "node_penalty": "constant: grid_loss_reverse reads it (eq 72)",
+        "seed_loss": "the Tape's linear stand-in for ot_loss: its derivative is the seed that ot_loss_reverse reads",
     },
     "step": {
         "clear_node": "zeroes an accumulator: the reverse zeroes its adjoints where it consumes them",

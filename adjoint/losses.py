@@ -18,6 +18,13 @@ def grid_loss_reverse(s: ti.template(), g: ti.template()):
 
 
 @ti.kernel
+def ot_loss_reverse(s: ti.template(), g: ti.template()):
+    """dL/dm_i = w_g dS/dm_i, the Sinkhorn potentials' gradient that ot_loss left in g.seed."""
+    for I in ti.grouped(g.m):
+        g.adj_m[I] = g.seed[I]
+
+
+@ti.kernel
 def splat_reverse(s: ti.template(), g: ti.template(), a: ti.template(), f: ti.i32):
     """dL/dx_p += sum_i dN/dx_p (value_p . dL/dm_i) with g's dx (eq 42-43)."""
     for p in range(s.n_particles):
@@ -45,7 +52,10 @@ def evaluate_reverse(s, a, f):
     (v, C, F get zero: eq 44-46)."""
     zero_step(s, a, f)
     for g in s.loss_grids:
-        grid_loss_reverse(s, g)
+        if g.kind == "ot":
+            ot_loss_reverse(s, g)
+        else:
+            grid_loss_reverse(s, g)
         splat_reverse(s, g, a, f)
     if s.has_position_loss:
         position_loss_reverse(s, a, f)

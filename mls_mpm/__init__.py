@@ -9,7 +9,7 @@ import importlib.util
 _EXPORTS = {  # name -> the submodule that defines it
     "SimConfig": "config", "ConfigError": "config",
     "Simulator": "simulator", "SimulationError": "errors",
-    "PositionLoss": "losses", "MassLoss": "losses", "ColorLoss": "losses", "LossError": "losses",
+    "PositionLoss": "losses", "MassLoss": "losses", "ColorLoss": "losses", "OTLoss": "losses", "LossError": "losses",
 }
 
 __all__ = list(_EXPORTS)

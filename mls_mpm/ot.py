@@ -63,9 +63,28 @@ def softmin(h: np.ndarray, eps: float) -> np.ndarray:
     for axis in range(h.ndim):
         cost = _cost_1d(h.shape[axis], eps)
         moved = np.moveaxis(out, axis, -1)  # (..., j)
-        blurred = _logsumexp(moved[..., None, :] - cost)  # (..., i)
+        if cost.max() <= FAST_COST:
+            blurred = _blur_lse(moved, np.exp(-cost))
+        else:
+            blurred = _logsumexp(moved[..., None, :] - cost)  # (..., i)
         out = np.moveaxis(blurred, -1, axis)
     return -eps * out
+
+
+# The fast path: log sum_j exp(z_j) K_ij = M + log sum_j exp(z_j - M) K_ij with M the line's largest z, one
+# matrix product per axis. It is exact to round-off while no kernel entry underflows: the sum is at least
+# K_ij* > exp(-FAST_COST) (j* the line's largest entry), and a term that exp(z_j - M) drops (below e^-745) is
+# then e^-170 of it or less. Blurs too small for that (a long grid at a blur below ~res/37 cells) take the dense
+# log-sum-exp.
+FAST_COST = 575.0
+
+
+def _blur_lse(z: np.ndarray, kernel: np.ndarray) -> np.ndarray:
+    """log sum_j exp(z_j) kernel_ij over the last axis of z, for a symmetric kernel (rows of -inf give -inf)."""
+    top = z.max(axis=-1, keepdims=True)
+    top = np.where(np.isfinite(top), top, 0.0)
+    with np.errstate(divide="ignore"):
+        return np.log(np.exp(z - top) @ kernel) + top
 
 
 def _logsumexp(z: np.ndarray) -> np.ndarray:

@@ -15,7 +15,7 @@ import numpy as np
 from . import memory
 from .images import (DECODE_BYTES, ImageError, default_region, image_size, load_image, material, particle_bound,
                      pixel_of, sample_particles, splat_grid)
-from .losses import ColorLoss, MassLoss, PositionLoss
+from .losses import ColorLoss, MassLoss, OTLoss, PositionLoss
 from .memory import check_memory
 from .scene import SceneError
 from .scene_keys import toml_text
@@ -103,12 +103,14 @@ def build(scene) -> Problem:
         return Problem(x0, colors, PositionLoss(target_x), target_x, grids, max(ls.grids))
 
     tx, tcolors = _sample(scene, "scene.target", target)
-    m_t = cfg.m_p * (len(x0) / len(tx) if scene.target_density == "match" else 1.0)
+    m_t = target_particle_mass(scene, len(x0), len(tx))
     grids = [splat_grid(tx, m_t, res) for res in ls.grids]
     alpha = None
     if ls.kind == "color":
         targets = [splat_grid(tx, m_t, res, tcolors) for res in ls.grids]
         loss = ColorLoss(targets, colors, list(ls.weights))
+    elif ls.kind == "ot":
+        loss = OTLoss(grids, list(ls.weights), ls.ot_blur, ls.ot_reach, list(ls.mass_weights) or None)
     else:
         if ls.penalty:
             alpha = [_alpha(scene, g) for g in grids]
@@ -121,6 +123,10 @@ def loss_grids(ls) -> list:
     if ls.kind == "position":
         return []
     channels = 3 if ls.kind == "color" else 1
+    if ls.kind == "ot":  # a transport term where the weight is > 0, eq 11 where the mass weight is
+        mass_weights = ls.mass_weights or (0.0,) * len(ls.grids)
+        return [(res, 1, False) for res, w in zip(ls.grids, ls.weights) if w > 0] + \
+            [(res, 1, False) for res, w in zip(ls.grids, mass_weights) if w > 0]
     return [(res, channels, bool(ls.penalty)) for res in ls.grids]
 
 
@@ -132,6 +138,24 @@ def target_grid_bytes(ls) -> int:
     words = 1 + (3 if ls.kind == "color" else 0) + (1 if ls.penalty else 0) + (PENALTY_IMAGE_WORDS if image else 0) \
         + GRID_TEMPORARIES
     return sum(res * res * words * WORD for res in ls.grids)
+
+
+def target_particle_mass(scene, n_body, n_target) -> float:
+    """Mass of one target particle: m_p, rescaled with target_density "match" so the totals are equal."""
+    return scene.sim.m_p * (n_body / n_target if scene.target_density == "match" else 1.0)
+
+
+def mass_error(mass, target) -> float:
+    """Total-variation distance between two node-mass grids, relative to the target's mass:
+    1/2 sum_i |m_i - m_iu| / sum_i m_iu (0: the same masses on every node; 1: disjoint, equal totals)."""
+    mass, target = np.asarray(mass, np.float64), np.asarray(target, np.float64)
+    total = target.sum()
+    return 0.0 if total <= 0 else float(0.5 * np.abs(mass - target).sum() / total)
+
+
+def color_error(color_mass, target) -> float:
+    """The largest over the RGB channels of mass_error between two colour-mass grids (res, res, 3) (eq 12)."""
+    return max(mass_error(color_mass[..., c], target[..., c]) for c in range(3))
 
 
 def _check_memory(scene, images, particles):

@@ -164,6 +164,7 @@ def _finish(scene, prob, sim, done, starts, out, wall, emit):
         "loss_final": done[-1].losses[-1],
         "iou": problems.iou(problems.occupied(mass, rest), problems.occupied(target, rest)),
         "mass_outside_target": problems.mass_outside(mass, target),
+        "mass_error": problems.mass_error(mass, target),
         "iterations": sum(r.iterations for r in done),
         "converged": all(r.converged for r in done),
         "stop_reason": [r.reason for r in done],
@@ -181,6 +182,10 @@ def _finish(scene, prob, sim, done, starts, out, wall, emit):
         "final_x": final_x,
         **{f"init_{k}": np.stack([s[k] for s in starts[:len(done)]]) for k in STATE_KEYS},
     }
+    if scene.loss.kind == "color":
+        m_t = problems.target_particle_mass(scene, len(prob.x0), len(prob.target_points))
+        target_color = splat_grid(prob.target_points, m_t, res, prob.target_colors)
+        summary["color_error"] = problems.color_error(splat_grid(final_x, cfg.m_p, res, prob.colors), target_color)
     if prob.target_x is not None:
         arrays["target_x"] = prob.target_x
     if prob.target_points is not None:

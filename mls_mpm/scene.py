@@ -34,6 +34,9 @@ class LossSettings:
     penalty_max: float = 10.0  # alpha of a white penalty-image pixel (black: 1)
     target_scale: tuple = (1.0, 1.0)  # position loss: x_u = centroid + scale (x0 - centroid) + offset
     target_offset: tuple = (0.0, 0.0)
+    ot_blur: float = 2.0  # ot: entropic blur sigma in cells of each loss grid
+    ot_reach: float | None = None  # ot: None (balanced) or the unbalanced reach in domain units
+    mass_weights: tuple = ()  # ot: weight of eq 11 on each loss grid beside the transport cost (0: none)
 
 
 @dataclass(frozen=True)
@@ -180,6 +183,9 @@ def load_scene(path, overrides=()) -> Scene:
     weights = r.get("loss", "weights") or (1.0,) * len(grids)
     if len(weights) != len(grids):
         r.fail("loss", "weights", f"one weight per loss grid ({len(grids)}: loss.grids = {toml_text(list(grids))})")
+    if kind != "ot" and any(w <= 0 for w in weights):
+        r.fail("loss", "weights", "a non-empty list of numbers > 0 (0 is allowed only with loss.kind = \"ot\", "
+                                  "where a grid may carry only its loss.mass_weights term)")
     penalty = r.get("loss", "penalty")
     if kind not in ("mass", "log_mass") and penalty != 0.0:
         r.fail("loss", "penalty", f"0 with loss.kind = \"{kind}\" (penalty grids weigh the mass losses)")
@@ -189,8 +195,19 @@ def load_scene(path, overrides=()) -> Scene:
     for key in moves:
         if kind != "position" and r.has("loss", key):
             r.fail("loss", key, f"no {key} with loss.kind = \"{kind}\" (it moves the position loss's targets)")
+    for key in ("ot_blur", "ot_reach", "mass_weights"):
+        if kind != "ot" and r.has("loss", key):
+            r.fail("loss", key, f"no {key} with loss.kind = \"{kind}\" (it sets the optimal-transport loss, "
+                                "loss.kind = \"ot\")")
+    mass_weights = r.get("loss", "mass_weights") or ()
+    if mass_weights and len(mass_weights) != len(grids):
+        r.fail("loss", "mass_weights", f"one weight per loss grid ({len(grids)}: loss.grids = {toml_text(list(grids))})")
+    if kind == "ot" and any(w + mw <= 0 for w, mw in zip(weights, mass_weights or (0.0,) * len(grids))):
+        r.fail("loss", "weights", "on every loss grid a transport weight (loss.weights) or a mass weight "
+                                  "(loss.mass_weights) > 0")
     loss = LossSettings(kind=kind, grids=grids, weights=weights, penalty=penalty,
-                        penalty_max=r.get("loss", "penalty_max"), **moves)
+                        penalty_max=r.get("loss", "penalty_max"), **moves, ot_blur=r.get("loss", "ot_blur"),
+                        ot_reach=r.get("loss", "ot_reach"), mass_weights=mass_weights)
 
     optimize = OptimizeSettings(**{key: r.get("optimize", key) for key in SPEC["optimize"]})
     render = {key: r.get("render", key) for key in SPEC["render"]}

@@ -25,7 +25,7 @@ from .errors import UserError
 from .images import ImageError, check_image
 from .optimize import METHODS
 
-LOSS_KINDS = ("position", "mass", "log_mass", "color")
+LOSS_KINDS = ("position", "mass", "log_mass", "color", "ot")
 STEPS = ("normalized", "raw")
 RENDER_MODES = ("mass", "color", "particles")
 RENDER_SIZE_MIN = 16  # render.size and `render --size` in pixels
@@ -117,14 +117,14 @@ def _ints(least):
     return read, f"a non-empty list of integers >= {least}"
 
 
-def _floats_positive():
-    num = _num(lambda x: x > 0, "")[0]
+def _floats_nonnegative():
+    num = _num(lambda x: x >= 0, "")[0]
 
     def read(v):
         if not isinstance(v, list) or not v or any(num(x) is None for x in v):
             return None
         return tuple(float(x) for x in v)
-    return read, "a non-empty list of numbers > 0"
+    return read, "a non-empty list of numbers >= 0"
 
 
 def _penalty():
@@ -173,9 +173,12 @@ SPEC = {
     "loss": {
         "kind": ("mass", _choice(LOSS_KINDS)),
         "grids": (None, _ints(MIN_LOSS_GRID)),
-        "weights": (None, _floats_positive()),
+        "weights": (None, _floats_nonnegative()),
         "penalty": (0.0, _penalty()),
         "penalty_max": (10.0, _num(lambda x: x >= 1, "a number >= 1")),
+        "ot_blur": (2.0, _num(lambda x: 0.25 <= x <= 64, "a number in [0.25, 64] (cells of each loss grid)")),
+        "ot_reach": (None, _num(lambda x: x > 0, "a number > 0 (domain units; leave it out for balanced transport)")),
+        "mass_weights": (None, _floats_nonnegative()),
         "target_scale": ([1.0, 1.0], _scale()),
         "target_offset": ([0.0, 0.0], _vec(2, "a list [dx, dy] of two numbers")),
     },

@@ -14,12 +14,18 @@ FAULT_NON_FINITE = 1  # a particle's new state holds NaN or Inf
 class LossGrid:
     """One loss grid of its own resolution (thesis 8.1): its mass (and color-mass) and target.
 
-    kind: "mass" (eq 11 / 72), "log_mass" (1/2 (ln(m+1) - ln(m_u+1))^2) or "color" (eq 13).
-    Entry [i, j] is the node at (i dx, j dx) with dx = 1 / res.
+    kind: "mass" (eq 11 / 72), "log_mass" (1/2 (ln(m+1) - ln(m_u+1))^2), "color" (eq 13) or "ot" (the
+    Sinkhorn divergence of losses.OTLoss, computed in numpy from m; its target stays in numpy, and the field
+    `seed` holds its gradient dL/dm_i in place of the target field). Entry [i, j] is the node at (i dx, j dx)
+    with dx = 1 / res.
     """
 
-    def __init__(self, dtype, kind, res, weight, has_alpha, needs_grad=False, needs_adjoint=False):
+    def __init__(self, dtype, kind, res, weight, has_alpha, needs_grad=False, needs_adjoint=False, blur=0.0,
+                 reach=None, tol=0.0):
         self.kind = kind
+        self.np_dtype = np.float64 if dtype == ti.f64 else np.float32
+        self.blur, self.reach, self.tol = blur, reach, tol  # OT grids only
+        self.target_np = None  # OT grids: the target masses m_iu (res, res), set by upload_loss
         self.res = res
         self.dx = 1.0 / res
         self.inv_dx = float(res)
@@ -30,7 +36,10 @@ class LossGrid:
         self.channels = channels
         # m: node mass (color-mass c_i for color grids, eq 12); target: m_iu or c_iu
         self.m = ti.Vector.field(channels, dtype, shape=(res, res), needs_grad=needs_grad)
-        self.target = ti.Vector.field(channels, dtype, shape=(res, res))
+        if kind == "ot":
+            self.seed = ti.Vector.field(channels, dtype, shape=(res, res))  # dL/dm_i of the last ot_loss
+        else:
+            self.target = ti.Vector.field(channels, dtype, shape=(res, res))
         if has_alpha:
             self.alpha = ti.field(dtype, shape=(res, res))  # penalty alpha_i of eq 72
         if needs_adjoint:
@@ -97,7 +106,8 @@ class State:
         if position_loss:
             self.target_x = ti.Vector.field(2, dt_, shape=N)  # x_pu of eq 10
         self.loss_grids = [
-            LossGrid(dt_, lg.kind, lg.res, lg.weight, lg.alpha is not None, needs_grad=g, needs_adjoint=not g)
+            LossGrid(dt_, lg.kind, lg.res, lg.weight, lg.alpha is not None, needs_grad=g, needs_adjoint=not g,
+                     blur=lg.blur, reach=lg.reach, tol=lg.tol)
             for lg in loss_grids
         ]
 
@@ -110,6 +120,9 @@ def upload_loss(s, loss):
         return
     np_dtype = np.float64 if s.x.dtype == ti.f64 else np.float32
     for g, spec in zip(s.loss_grids, loss.grids):
+        if g.kind == "ot":
+            g.target_np = spec.target[..., 0]
+            continue
         g.target.from_numpy(spec.target.astype(np_dtype))
         if spec.alpha is not None:
             g.alpha.from_numpy(spec.alpha.astype(np_dtype))

@@ -27,6 +27,22 @@ def tape_gradient(cfg, init, loss, controls, validation=False, state=None):
     for field in (t.grid_m, t.grid_p, t.grid_v, t.loss, *(g.m for g in t.loss_grids)):
         field.fill(0.0)
     T = cfg.steps
+    ot_grids = [g for g in t.loss_grids if g.kind == "ot"]
+    ot_value = 0.0
+    if ot_grids:
+        # the OT divergence is computed in numpy, outside the Tape: a first pass finds the final node masses and
+        # its gradient dS/dm (the seed); the taped pass then differentiates the linear stand-in sum_i seed_i m_i,
+        # whose derivative through the trajectory is the seed's, the chain rule the manual reverse pass applies
+        for f in range(T):
+            p2g(t, f)
+            grid_op(t, f)
+            g2p(t, f)
+        for g in ot_grids:
+            g.m.fill(0.0)
+            losses.splat(t, g, T)
+            ot_value += losses.ot_loss(t, g)
+        for field in (t.grid_m, t.grid_p, t.grid_v, t.loss, *(g.m for g in t.loss_grids)):
+            field.fill(0.0)
     with ti.ad.Tape(loss=t.loss, validation=validation):
         for f in range(T):
             p2g(t, f)
@@ -34,7 +50,11 @@ def tape_gradient(cfg, init, loss, controls, validation=False, state=None):
             g2p(t, f)
         for g in t.loss_grids:
             losses.splat(t, g, T)
-            losses.grid_loss(t, g)
+            if g.kind == "ot":
+                losses.seed_loss(t, g)
+            else:
+                losses.grid_loss(t, g)
         if t.has_position_loss:
             losses.position_loss(t, T)
-    return t.loss[None], t.F_pc.grad.to_numpy().astype(np.float64), t
+    surrogate = sum(float(np.sum(g.seed.to_numpy() * g.m.to_numpy())) for g in ot_grids)
+    return t.loss[None] - surrogate + ot_value, t.F_pc.grad.to_numpy().astype(np.float64), t

@@ -62,6 +62,14 @@ def make_problem(kind, schedule="auto"):
         i = np.arange(32) / 32.0
         ramp = np.stack(np.broadcast_arrays(i[None, :], i[:, None], 0.5 + 0 * i[:, None]), axis=-1)
         loss = mls_mpm.ColorLoss([t32[..., None] * ramp], colors=colors)  # the ramp turned by 90 degrees
+    elif kind == "ot":
+        # balanced Sinkhorn divergence on a 16 grid, target offset by ~5 cells of it (far beyond eq 11's reach)
+        # plus eq 11 on the 32 grid; Sinkhorn run to 1e-12 so that its potentials are exact to round-off
+        far = (0.70, 0.62)
+        loss = mls_mpm.OTLoss([disk_mass(16, far, radius), disk_mass(32, far, radius)], weights=[1.0, 0.5],
+                              blur=1.5, mass_weights=[0.0, 2.0], tol=1e-12)
+    elif kind == "ot_unbalanced":
+        loss = mls_mpm.OTLoss([disk_mass(16, (0.6, 0.55), 0.1, density=2.0)], blur=1.5, reach=0.3, tol=1e-12)
     else:
         raise ValueError(kind)
     sim = mls_mpm.Simulator(cfg, x0, loss=loss)
@@ -85,12 +93,16 @@ def fd_directional(sim, c, d, eps=EPS):
     return (sim.forward(c + eps * d) - sim.forward(c - eps * d)) / (2 * eps)
 
 
-KINDS = ["position", "mass", "log_mass", "color"]
+KINDS = ["position", "mass", "log_mass", "color", "ot", "ot_unbalanced"]
+# The OT losses' directional derivatives are small (~1e-6 and ~1e-8 of losses ~0.04 and ~4e-4), so at eps = 1e-6
+# the cancellation error 1e-16 |L| / eps is ~1e-5 of them; at 1e-4 it is ~1e-7 and the truncation ~eps^2 below it.
+FD_EPS = {"ot": 1e-4, "ot_unbalanced": 1e-4}
 
 
 # ------------------------------------------------------------------ manual vs Tape vs finite differences
-@pytest.mark.parametrize("kind", ["position", "mass", pytest.param("log_mass", marks=pytest.mark.slow),
-                                  pytest.param("color", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("kind", ["position", "mass", "ot", pytest.param("log_mass", marks=pytest.mark.slow),
+                                  pytest.param("color", marks=pytest.mark.slow),
+                                  pytest.param("ot_unbalanced", marks=pytest.mark.slow)])
 def test_manual_gradient_matches_tape(problems, kind):
     """backward() (eq 41-71) vs ti.ad.Tape over the same p2g/grid_op/g2p and loss kernels: rel err <= 1e-6.
 
@@ -117,7 +129,7 @@ def test_manual_gradient_matches_central_differences(problems, kind):
     g = sim.backward()
     for q in range(2):
         d = random_unit(c.shape, seed=100 + q)
-        assert rel_err(np.sum(g * d), fd_directional(sim, c, d)) <= FD_TOL
+        assert rel_err(np.sum(g * d), fd_directional(sim, c, d, FD_EPS.get(kind, EPS))) <= FD_TOL
     # the gradient direction itself: a descent step along -g lowers the loss by about eps |g|^2
     d = g / np.linalg.norm(g)
     assert rel_err(np.linalg.norm(g), fd_directional(sim, c, d)) <= FD_TOL
@@ -142,7 +154,7 @@ def test_isotropic_deformation_gradient(problems, a):
     assert rel_err(g, sim.gradient_tape(c)) <= TAPE_TOL
     for q in range(2):
         d = random_unit(c.shape, seed=200 + q)
-        assert rel_err(np.sum(g * d), fd_directional(sim, c, d)) <= FD_TOL
+        assert rel_err(np.sum(g * d), fd_directional(sim, c, d, FD_EPS.get(kind, EPS))) <= FD_TOL
 
 
 def test_initial_state_gradients(problems):
