@@ -3,6 +3,10 @@
 Every image is 64 x 64 RGB: white background, shapes in black (or red/blue for the color scenes).
 Disks are centred at pixel (32, 32); "cells" refer to the circle_to_torus scene, whose region maps the
 64 pixels onto 16 cells of the 32 x 32 grid (4 pixels per cell).
+
+scenes/images/pairs/ holds the shape pairs of `mls-mpm bench quality` (mls_mpm/bench/quality.py lists them and
+what each tests): <pair>_initial.png and <pair>_target.png, black shapes (one pair in red and blue), every
+shape at least 6% of the image, its thin parts (rings, strokes) 6 pixels thick or more (a crescent's tips aside).
 """
 import math
 import os
@@ -146,6 +150,102 @@ def images():
     }
 
 
+def shape(*parts):
+    """A black shape on white: parts are (kind, args, fill) with kind "disk" (cx, cy, r), "rect" (x0, y0, x1, y1,
+    corners included) or "poly" (corner list); a white fill cuts a hole. Drawn in order."""
+    img, draw = canvas()
+    for kind, args, fill in parts:
+        if kind == "disk":
+            disk(draw, *args, fill)
+        elif kind == "rect":
+            draw.rectangle(args, fill=fill)
+        else:
+            draw.polygon(args, fill=fill)
+    return img
+
+
+def ring(cx, cy, outer, inner):
+    """The parts of an annulus (a disk with a concentric hole)."""
+    return ("disk", (cx, cy, outer), BLACK), ("disk", (cx, cy, inner), WHITE)
+
+
+def square(cx, cy, side, fill=BLACK):
+    """The part of an axis-aligned square of `side` pixels centred at (cx, cy)."""
+    x0, y0 = int(cx - side / 2), int(cy - side / 2)
+    return "rect", (x0, y0, x0 + side - 1, y0 + side - 1), fill
+
+
+def stroke(points, width):
+    """The parts of a polyline of thick straight strokes: a rectangle along each segment and a disk at each
+    joint, so corners are round and the stroke is `width` pixels thick everywhere."""
+    parts = []
+    for (x0, y0), (x1, y1) in zip(points, points[1:]):
+        length = math.hypot(x1 - x0, y1 - y0)
+        nx, ny = -(y1 - y0) / length * width / 2, (x1 - x0) / length * width / 2
+        parts.append(("poly", [(x0 + nx, y0 + ny), (x1 + nx, y1 + ny), (x1 - nx, y1 - ny), (x0 - nx, y0 - ny)],
+                      BLACK))
+    parts += [("disk", (x, y, width / 2), BLACK) for x, y in points]
+    return parts
+
+
+def arc(cx, cy, r, start, end, n=24):
+    """Points on a circle of radius r from angle start to end (degrees, counter-clockwise as seen on screen)."""
+    return [(cx + r * math.cos(math.radians(a)), cy - r * math.sin(math.radians(a)))
+            for a in (start + (end - start) * k / n for k in range(n + 1))]
+
+
+def two_colors(body, first, second, axis):
+    """The body (a black-on-white image) painted first on its left (axis "x") or top (axis "y") half, second on
+    the other half."""
+    mask = ImageChops.invert(body.convert("L"))
+    img, _ = canvas()
+    img.paste(second, (0, 0), mask)
+    half = Image.new("L", (SIZE, SIZE), 0)
+    ImageDraw.Draw(half).rectangle((0, 0, SIZE // 2 - 1, SIZE - 1) if axis == "x" else (0, 0, SIZE - 1, SIZE // 2 - 1),
+                                   fill=255)
+    img.paste(first, (0, 0), ImageChops.multiply(mask, half))
+    return img
+
+
+def pairs():
+    """pair name -> (initial image, target image): the suite of `mls-mpm bench quality`. Areas are in pixels of
+    the 4096; a pair that does not test an area ratio keeps its two areas within about 10%."""
+    disk24 = shape(("disk", (C, C, 24), BLACK))  # 1810 px, 44%
+    disk22 = shape(("disk", (C, C, 22), BLACK))  # 1520 px
+    disk16 = shape(("disk", (C, C, 16), BLACK))  # 804 px
+    A = ([(8, 58), (32, 6), (56, 58), (45, 58), (32, 29), (19, 58)], [(25, 44), (39, 44), (41, 50), (23, 50)])
+    return {
+        # area ratio 1/3 and 3
+        "shrink_disk": (shape(("disk", (C, C, 28), BLACK)), disk16),  # 2463 -> 804 px
+        "grow_square": (shape(square(C, C, 26)), shape(square(C, C, 45))),  # 676 -> 2025 px
+        # off-centre targets
+        "corner_disk": (disk16, shape(("disk", (46, 18, 16), BLACK))),  # the top-right corner
+        "side_crescent": (shape(("disk", (C, C, 17), BLACK)),  # to a crescent on the left, 12 px at its widest
+                          shape(("disk", (26, C, 24), BLACK), ("disk", (38, C, 18), WHITE))),
+        # thin parts (6 pixels)
+        "thin_ring": (shape(("disk", (C, C, 17), BLACK)), shape(*ring(C, C, 28, 22))),
+        "letter_L_thin": (shape(square(C, C, 24)), shape(("rect", (10, 8, 15, 55), BLACK),
+                                                        ("rect", (10, 50, 55, 55), BLACK))),
+        # holes appearing and closing
+        "hole_opens": (disk24, shape(*ring(C, C, 28, 14))),
+        "hole_closes": (shape(*ring(C, C, 28, 14)), disk24),
+        # one body into several, several into one
+        "split_two": (shape(("disk", (C, C, 20), BLACK)), shape(("disk", (17, C, 14), BLACK),
+                                                                ("disk", (47, C, 14), BLACK))),
+        "split_three": (disk22, shape(("disk", (C, 15, 12), BLACK), ("disk", (15, 46, 12), BLACK),
+                                      ("disk", (49, 46, 12), BLACK))),
+        "merge_four": (shape(*(square(x, y, 14) for x in (11, 53) for y in (11, 53))), disk16),
+        # glyphs drawn as polygons and strokes
+        "letter_T": (shape(square(C, C, 34)), shape(("rect", (6, 6, 57, 17), BLACK), ("rect", (26, 6, 37, 57), BLACK))),
+        "letter_C": (disk22, shape(*stroke(arc(C, C, 21, 45, 315), 12))),
+        "letter_S": (shape(square(C, C, 34)), shape(*stroke(arc(C, 20, 12, 20, 270) + arc(C, 44, 12, 90, -160), 10))),
+        "letter_A": (shape(("disk", (C, C, 19), BLACK)), shape(("poly", A[0], BLACK), ("poly", A[1], BLACK))),
+        # colours: a red-and-blue body whose colours have to trade places
+        "color_bar_to_disk": (two_colors(shape(("rect", (6, 20, 57, 43), BLACK)), RED, BLUE, "x"),
+                              two_colors(shape(("disk", (C, C, 20), BLACK)), BLUE, RED, "x")),
+    }
+
+
 def save(img, path):
     """Write img as a PNG atomically (a temp file beside path, then renamed over it), readable by all (0644)."""
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
@@ -161,12 +261,18 @@ def save(img, path):
 
 
 def main(out=OUT):
-    """Write every image as <out>/<name>.png (default: scenes/images/)."""
+    """Write every image as <out>/<name>.png (default: scenes/images/) and every pair as
+    <out>/pairs/<pair>_initial.png and <out>/pairs/<pair>_target.png."""
     out = Path(out)
     out.mkdir(exist_ok=True)
     for name, img in images().items():
         save(img, out / f"{name}.png")
         print(out / f"{name}.png")
+    (out / "pairs").mkdir(exist_ok=True)
+    for name, (initial, target) in pairs().items():
+        for role, img in (("initial", initial), ("target", target)):
+            save(img, out / "pairs" / f"{name}_{role}.png")
+            print(out / "pairs" / f"{name}_{role}.png")
 
 
 if __name__ == "__main__":

@@ -302,14 +302,18 @@ def test_particle_bound_counts_only_the_material_box():
 # ---- scenes/make_images.py ---------------------------------------------------------------------------------
 
 def test_make_images_reproduces_the_shipped_images(tmp_path, monkeypatch):
-    """The generator writes every shipped image byte for byte, each readable by all, and no temp file."""
+    """The generator writes every shipped image byte for byte, the shape pairs of `bench quality` in pairs/
+    included, each readable by all, and no temp file."""
     root = Path(__file__).resolve().parents[1]
     monkeypatch.syspath_prepend(str(root / "scenes"))
     import make_images
 
     make_images.main(tmp_path)
-    written = sorted(p.name for p in tmp_path.iterdir())
-    assert written == sorted(p.name for p in (root / "scenes" / "images").glob("*.png"))
+    written = sorted(str(p.relative_to(tmp_path)) for p in tmp_path.rglob("*") if p.is_file())
+    shipped = root / "scenes" / "images"
+    pngs = [*shipped.glob("*.png"), *shipped.glob("pairs/*.png")]
+    assert written == sorted(str(p.relative_to(shipped)) for p in pngs)
+    assert sum(name.startswith("pairs/") for name in written) >= 28
     for name in written:
-        assert (tmp_path / name).read_bytes() == (root / "scenes" / "images" / name).read_bytes(), name
+        assert (tmp_path / name).read_bytes() == (shipped / name).read_bytes(), name
         assert (tmp_path / name).stat().st_mode & 0o777 == 0o644, name
