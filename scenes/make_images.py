@@ -152,13 +152,19 @@ def images():
 
 def shape(*parts):
     """A black shape on white: parts are (kind, args, fill) with kind "disk" (cx, cy, r), "rect" (x0, y0, x1, y1,
-    corners included) or "poly" (corner list); a white fill cuts a hole. Drawn in order."""
+    corners included), "poly" (corner list) or "mask" (a test of a pixel's centre x, y); a white fill cuts a hole.
+    Drawn in order."""
     img, draw = canvas()
     for kind, args, fill in parts:
         if kind == "disk":
             disk(draw, *args, fill)
         elif kind == "rect":
             draw.rectangle(args, fill=fill)
+        elif kind == "mask":
+            for y in range(SIZE):
+                for x in range(SIZE):
+                    if args(x + 0.5, y + 0.5):
+                        img.putpixel((x, y), fill)
         else:
             draw.polygon(args, fill=fill)
     return img
@@ -175,23 +181,19 @@ def square(cx, cy, side, fill=BLACK):
     return "rect", (x0, y0, x0 + side - 1, y0 + side - 1), fill
 
 
-def stroke(points, width):
-    """The parts of a polyline of thick straight strokes: a rectangle along each segment and a disk at each
-    joint, so corners are round and the stroke is `width` pixels thick everywhere."""
-    parts = []
-    for (x0, y0), (x1, y1) in zip(points, points[1:]):
-        length = math.hypot(x1 - x0, y1 - y0)
-        nx, ny = -(y1 - y0) / length * width / 2, (x1 - x0) / length * width / 2
-        parts.append(("poly", [(x0 + nx, y0 + ny), (x1 + nx, y1 + ny), (x1 - nx, y1 - ny), (x0 - nx, y0 - ny)],
-                      BLACK))
-    parts += [("disk", (x, y, width / 2), BLACK) for x, y in points]
-    return parts
+def arc_stroke(cx, cy, r, width, start, end):
+    """The part of a stroke `width` pixels thick along the circle of radius r about (cx, cy), from angle start
+    counter-clockwise to end (degrees, 0 pointing right, 90 up), with round ends: a pixel is in it when its
+    centre is."""
+    sweep = (end - start) % 360
+    ends = [(cx + r * math.cos(math.radians(a)), cy - r * math.sin(math.radians(a))) for a in (start, end)]
 
+    def inside(x, y):
+        angle = math.degrees(math.atan2(cy - y, x - cx))
+        on_arc = abs(math.hypot(x - cx, y - cy) - r) <= width / 2 and (angle - start) % 360 <= sweep
+        return on_arc or any(math.hypot(x - ex, y - ey) <= width / 2 for ex, ey in ends)
 
-def arc(cx, cy, r, start, end, n=24):
-    """Points on a circle of radius r from angle start to end (degrees, counter-clockwise as seen on screen)."""
-    return [(cx + r * math.cos(math.radians(a)), cy - r * math.sin(math.radians(a)))
-            for a in (start + (end - start) * k / n for k in range(n + 1))]
+    return "mask", inside, BLACK
 
 
 def two_colors(body, first, second, axis):
@@ -212,6 +214,7 @@ def pairs():
     the 4096; a pair that does not test an area ratio keeps its two areas within about 10%."""
     disk24 = shape(("disk", (C, C, 24), BLACK))  # 1810 px, 44%
     disk22 = shape(("disk", (C, C, 22), BLACK))  # 1520 px
+    disk20 = shape(("disk", (C, C, 20), BLACK))  # 1256 px
     disk16 = shape(("disk", (C, C, 16), BLACK))  # 804 px
     A = ([(8, 58), (32, 6), (56, 58), (45, 58), (32, 29), (19, 58)], [(25, 44), (39, 44), (41, 50), (23, 50)])
     return {
@@ -230,15 +233,16 @@ def pairs():
         "hole_opens": (disk24, shape(*ring(C, C, 28, 14))),
         "hole_closes": (shape(*ring(C, C, 28, 14)), disk24),
         # one body into several, several into one
-        "split_two": (shape(("disk", (C, C, 20), BLACK)), shape(("disk", (17, C, 14), BLACK),
-                                                                ("disk", (47, C, 14), BLACK))),
+        "split_two": (disk20, shape(("disk", (17, C, 14), BLACK), ("disk", (47, C, 14), BLACK))),
         "split_three": (disk22, shape(("disk", (C, 15, 12), BLACK), ("disk", (15, 46, 12), BLACK),
                                       ("disk", (49, 46, 12), BLACK))),
         "merge_four": (shape(*(square(x, y, 14) for x in (11, 53) for y in (11, 53))), disk16),
         # glyphs drawn as polygons and strokes
-        "letter_T": (shape(square(C, C, 34)), shape(("rect", (6, 6, 57, 17), BLACK), ("rect", (26, 6, 37, 57), BLACK))),
-        "letter_C": (disk22, shape(*stroke(arc(C, C, 21, 45, 315), 12))),
-        "letter_S": (shape(square(C, C, 34)), shape(*stroke(arc(C, 20, 12, 20, 270) + arc(C, 44, 12, 90, -160), 10))),
+        "letter_T": (shape(square(C, C, 34)), shape(("rect", (6, 6, 57, 17), BLACK),
+                                                    ("rect", (26, 6, 37, 57), BLACK))),
+        "letter_C": (disk20, shape(arc_stroke(C, C, 20, 12, 45, 315))),
+        "letter_S": (shape(square(C, C, 30)), shape(arc_stroke(C, 20, 11.5, 9, 20, 270),
+                                                     arc_stroke(C, 43, 11.5, 9, 200, 90))),
         "letter_A": (shape(("disk", (C, C, 19), BLACK)), shape(("poly", A[0], BLACK), ("poly", A[1], BLACK))),
         # colours: a red-and-blue body whose colours have to trade places
         "color_bar_to_disk": (two_colors(shape(("rect", (6, 20, 57, 43), BLACK)), RED, BLUE, "x"),
