@@ -114,21 +114,32 @@ def build_parser():
     render.add_argument("--arch", choices=["cpu", "gpu"], help="override sim.arch")
 
     bench = sub.add_parser("bench", formatter_class=fmt, help="benchmarks (figures for BENCHMARKS.md)")
-    bench.add_argument("what", choices=["gradient", "scaling", "tradeoff"],
+    bench.add_argument("what", choices=["gradient", "scaling", "tradeoff", "quality"],
                        help="gradient: forward/backward/Tape speed and memory; scaling: the same against "
                             "particles, steps and grid (writes scaling.png); tradeoff: accuracy against time "
-                            "over the settings of SCENE")
+                            "over the settings of SCENE; quality: `mls-mpm morph` on a suite of shape pairs "
+                            "(iou, mass_error, wall time against targets)")
     bench.add_argument("scene", nargs="?", help="scene file (tradeoff only)")
     bench.add_argument("--out", help="tradeoff: output folder (default: renders/tradeoff_<scene name>/); "
                                      "scaling: folder of scaling.png (default: .); gradient: also write the "
-                                     "table to this file (its folder must exist)")
+                                     "table to this file (its folder must exist); quality: output folder "
+                                     "(default: renders/bench_quality/)")
     bench.add_argument("--quick", action="store_true",
-                       help="gradient: 40 steps; tradeoff: fewer rows and iterations (under 10 minutes)")
+                       help="gradient: 40 steps; tradeoff: fewer rows and iterations (under 10 minutes); quality: "
+                            "3 pairs at --quality fast")
     bench.add_argument("--arch", choices=["cpu", "gpu", "cuda", "vulkan"], default="cpu",
                        help="gradient: the Taichi backend measured")
     bench.add_argument("--max-seconds", type=float, default=None,
                        help="tradeoff: wall-time budget of one row; a row over it is stopped and marked (default: "
                             "no limit)")
+    bench.add_argument("--workers", type=integer(1), default=None,
+                       help="quality: pairs morphed at once, each with cores // N threads (default: 1)")
+    bench.add_argument("--quality", choices=["fast", "default", "best"], default=None,
+                       help="quality: the morph's --quality (default: default; fast with --quick)")
+    bench.add_argument("--pairs", metavar="NAME,...", default=None,
+                       help="quality: only these pairs (names in mls_mpm/bench/quality.py; default: all)")
+    bench.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                       help="quality: passed to every morph, e.g. --set optimize.iterations=10 (repeatable)")
     return p
 
 
@@ -245,6 +256,22 @@ def cmd_bench(args):
     if args.max_seconds is not None and (args.what != "tradeoff" or not 0 < args.max_seconds < math.inf):
         raise BenchError(f"bench {args.what}: --max-seconds {args.max_seconds:g}: expected seconds > 0, with bench "
                          "tradeoff only")
+    quality_only = [flag for flag, given in (("--workers", args.workers is not None), ("--quality", args.quality),
+                                             ("--pairs", args.pairs is not None), ("--set", args.set)) if given]
+    if quality_only and args.what != "quality":
+        raise BenchError(f"bench {args.what}: {quality_only[0]} applies to bench quality only; drop it")
+    if args.what == "quality":
+        from .bench import bench_quality
+
+        names = None
+        if args.pairs is not None:
+            names = [n.strip() for n in args.pairs.split(",") if n.strip()]
+            if not names:
+                raise BenchError("bench quality: --pairs: expected pair names separated by commas, e.g. "
+                                 "--pairs split_two,letter_A")
+        bench_quality(quality=args.quality, quick=args.quick, workers=args.workers or 1, out=args.out, names=names,
+                      overrides=args.set)
+        return 0
     if args.what == "gradient":
         from .bench import bench_gradient
 
