@@ -29,6 +29,7 @@ from .errors import Interrupted
 from .images import splat_grid
 from .lock import folder_lock
 from .optimize import METHODS, PAIRS_MAX, STATE, OptimizeResult
+from .schedule import BUDGET_REASON, STAGE_STATE, Stage, staged
 from .result import STATE_KEYS, STATE_SHAPES
 from .simulator import Simulator
 
@@ -52,10 +53,11 @@ def prepare_out(out_dir):
 
 
 def fingerprint(scene):
-    """What a checkpoint must share with the scene to be resumed: all but render and the iteration budget."""
+    """What a checkpoint must share with the scene to be resumed: all but render and the iteration and time
+    budgets."""
     d = scene.to_dict()
     d.pop("render")
-    d["optimize"] = {k: v for k, v in d["optimize"].items() if k != "iterations"}
+    d["optimize"] = {k: v for k, v in d["optimize"].items() if k not in ("iterations", "max_seconds")}
     d["scene"] = {k: v for k, v in d["scene"].items() if k != "name"}
     return json.dumps(d, sort_keys=True)
 
@@ -84,6 +86,18 @@ def run_scene(scene, out_dir, resume=False, emit=print, should_stop=None, render
         return _run(scene, prob, sim, out, resume, emit, should_stop, render, t0)
 
 
+def stages(scene):
+    """The stages of optimize.schedule, or one stage of every loss grid."""
+    plan = scene.optimize.schedule or ({"grids": scene.loss.grids, "share": 1.0},)
+    return [Stage(tuple(s["grids"]), s["share"]) for s in plan]
+
+
+def _state_kinds(scene):
+    """What the checkpoint of this scene's optimizer holds (mls_mpm.optimize.STATE), with the stage's part."""
+    kinds = dict(STATE[scene.optimize.method])
+    return {**kinds, **STAGE_STATE} if len(stages(scene)) > 1 else kinds
+
+
 def _run(scene, prob, sim, out, resume, emit, should_stop, render, t0):
     cfg, opt = scene.sim, scene.optimize
     emit(f"{scene.name}: {len(prob.x0)} particles, {cfg.n_grid}^2 grid, {cfg.steps} steps, "
@@ -96,7 +110,7 @@ def _run(scene, prob, sim, out, resume, emit, should_stop, render, t0):
         done, starts, opt_state, elapsed = _load_checkpoint(ckpt, scene, prob)
         emit(f"resuming from {ckpt}: " + (f"round {len(done) + 1} of {opt.rounds}" if len(done) < opt.rounds
                                           else "every round is done; writing the result"))
-    method = METHODS[opt.method]
+    method = staged(METHODS[opt.method], stages(scene), opt.max_seconds, t0 - elapsed)
     while len(done) < opt.rounds:
         r = len(done)
         sim.set_initial(**starts[r])
@@ -113,6 +127,9 @@ def _run(scene, prob, sim, out, resume, emit, should_stop, render, t0):
             emit(f"interrupted: progress saved to {ckpt}; continue with --resume")
             return {"scene": scene.name, "interrupted": True, "wall_seconds": elapsed + time.perf_counter() - t0}
         done.append(res)
+        if res.reason == BUDGET_REASON:
+            emit(f"stopped at the time budget of {opt.max_seconds:g} s after {len(done)} of {opt.rounds} round(s)")
+            break
         if len(done) < opt.rounds:
             starts.append(_next_start(scene, prob, sim, starts[r], res))
         _save_checkpoint(ckpt, scene, done, starts, None, elapsed + time.perf_counter() - t0)
@@ -160,7 +177,7 @@ def _finish(scene, prob, sim, done, starts, out, wall, emit):
     losses = [L for r in done for L in r.losses]
     summary = {
         "scene": scene.name,
-        "loss_initial": done[0].losses[0],
+        "loss_initial": done[0].loss_start if done[0].loss_start is not None else done[0].losses[0],
         "loss_final": done[-1].losses[-1],
         "iou": problems.iou(problems.occupied(mass, rest), problems.occupied(target, rest)),
         "mass_outside_target": problems.mass_outside(mass, target),
@@ -276,7 +293,7 @@ def _load_checkpoint(path, scene, prob):
         opt_state = {"loss": check_value(path, "opt.loss", st.get("loss"), "float", what),
                      "controls": check_array(path, arrays, "opt_controls", "f", controls, what)}
         shapes = {"like_controls": controls, "particles": (N, 2), "pairs": (None, K * N * 4)}
-        for key, kind in STATE[opt.method].items():
+        for key, kind in _state_kinds(scene).items():
             if kind in shapes:
                 opt_state[key] = check_array(path, arrays, f"opt_{key}", "f", shapes[kind], what)
             elif kind == "per_control":
@@ -284,7 +301,7 @@ def _load_checkpoint(path, scene, prob):
             else:
                 opt_state[key] = check_value(path, f"opt.{key}", st.get(key), kind, what)
         _require_losses(path, "opt.losses", opt_state["losses"])
-        pairs = [opt_state[k] for k, kind in STATE[opt.method].items() if kind == "pairs"]
+        pairs = [opt_state[k] for k, kind in _state_kinds(scene).items() if kind == "pairs"]
         if pairs and (len({len(p) for p in pairs}) != 1 or len(pairs[0]) > PAIRS_MAX):
             raise CheckpointError(f"{path}: opt_S and opt_Y hold {len(pairs[0])} and {len(pairs[-1])} pairs: "
                                   f"expected as many of each, at most {PAIRS_MAX}; delete it or re-run")
