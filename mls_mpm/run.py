@@ -23,8 +23,8 @@ from pathlib import Path
 import numpy as np
 
 from . import problem as problems, runtime
-from .checkpoint import (TEMP_GLOB, CheckpointError, OutputError, check_array, check_value, load_npz, save_json,
-                         save_npz, split_state)
+from .checkpoint import (TEMP_GLOB, CheckpointError, OutputError, atomic_write, check_array, check_value, load_npz,
+                         save_json, save_npz, split_state)
 from .errors import Interrupted
 from .images import splat_grid
 from .lock import folder_lock
@@ -67,12 +67,13 @@ def _initial_state(prob):
     return {"x": prob.x0, "v": np.zeros((N, 2)), "C": np.zeros((N, 2, 2)), "F": np.tile(np.eye(2), (N, 1, 1))}
 
 
-def run_scene(scene, out_dir, resume=False, emit=print, should_stop=None, render=True):
+def run_scene(scene, out_dir, resume=False, emit=print, should_stop=None, render=True, files=None):
     """Optimize a scene's controls (all rounds), write result.npz, summary.json and the renders.
 
     Returns the summary dict; summary["interrupted"] is true when should_stop() ended the run early, in
     which case checkpoint.npz holds everything needed to continue with resume=True (or, with
-    summary["render_interrupted"], the result is complete and only its rendering was stopped).
+    summary["render_interrupted"], the result is complete and only its rendering was stopped). files: {name:
+    text} written atomically into the output folder once it is created and locked (morph's scene.toml).
     """
     t0 = time.perf_counter()
     prob = problems.build(scene)
@@ -83,6 +84,8 @@ def run_scene(scene, out_dir, resume=False, emit=print, should_stop=None, render
     sim = Simulator(scene.sim, prob.x0, loss=prob.loss)  # refuses a missing backend or too little memory: nothing written
     out = prepare_out(out_dir)
     with folder_lock(out, "run"):
+        for name, text in (files or {}).items():
+            atomic_write(out / name, lambda fh, text=text: fh.write(text.encode()))
         return _run(scene, prob, sim, out, resume, emit, should_stop, render, t0)
 
 
