@@ -51,7 +51,7 @@ def evaluate_reverse(s, a, f):
     """Seed the reverse pass (twin of mls_mpm.losses.evaluate): set dL/d(x, v, C, F) of step f from the loss
     (v, C, F get zero: eq 44-46)."""
     zero_step(s, a, f)
-    for g in s.loss_grids:
+    for g in s.active_grids:
         if g.kind == "ot":
             ot_loss_reverse(s, g)
         else:

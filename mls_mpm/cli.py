@@ -1,4 +1,4 @@
-"""Command line: mls-mpm run | check | render | bench. `main(argv) -> int`; Taichi starts only inside a command.
+"""Command line: mls-mpm run | morph | check | render | bench. `main(argv) -> int`; Taichi starts only inside a command.
 
 Exit codes: 0 done; 1 a simulation that went wrong, or `check` beyond its tolerances; 2 a bad command line or
 bad input (one line `mls-mpm: error: ...`); 130 and 143 stopped by SIGINT (Ctrl-C) and SIGTERM, after keeping
@@ -96,6 +96,26 @@ def build_parser():
     run.add_argument("--no-render", action="store_true", help="skip frames, gif and sheet")
     run.add_argument("--quiet", action="store_true", help="print only the final line")
 
+    morph = sub.add_parser("morph", formatter_class=fmt,
+                           help="morph one image into another: settings chosen from the two shapes, no scene file")
+    morph.add_argument("initial", help="image of the initial shape (see scenes/README.md, Shapes from images)")
+    morph.add_argument("target", help="image of the target shape")
+    morph.add_argument("--out", help="output folder (default: renders/morph_<initial>_to_<target>/)")
+    morph.add_argument("--quality", choices=["fast", "default", "best"], default="default",
+                       help="fast: a 32^2 preview within ~30 s; default: 64^2 within ~2 minutes; best: 64^2, "
+                            "250 iterations, no time budget")
+    morph.add_argument("--seconds", type=positive, help="wall-clock budget of the optimization, compile included "
+                                                        "(default: 25 fast, 110 default, none best)")
+    morph.add_argument("--loss", choices=["auto", "mass", "color"], default="auto",
+                       help="auto: the colour loss when both images have more than one colour region, else "
+                            "optimal transport + mass")
+    morph.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                       help="override any chosen scene key, e.g. --set sim.steps=300 (repeatable)")
+    morph.add_argument("--arch", choices=["cpu", "gpu"], help="override sim.arch")
+    morph.add_argument("--resume", action="store_true", help="continue an interrupted morph from its checkpoint")
+    morph.add_argument("--no-render", action="store_true", help="skip frames, gif and sheet")
+    morph.add_argument("--quiet", action="store_true", help="print only the final line")
+
     check = sub.add_parser("check", formatter_class=fmt,
                            help="compare the manual gradient with ti.ad.Tape and finite differences")
     check.add_argument("scene")
@@ -184,20 +204,20 @@ def _interrupted(stop, e):
     return stop.exit_code()
 
 
-def cmd_run(args):
+def cmd_run(args, files=None):
     from pathlib import Path
 
     from .errors import Interrupted, SimulationError
     from .run import run_scene
 
-    scene = _scene(args)
+    scene = args.loaded if files else _scene(args)
     out = Path(args.out) if args.out else Path("renders") / scene.name
     stop = StopFlag()
     restore = stop.install()
     emit = (lambda *_: None) if args.quiet else (lambda msg: print(msg, flush=True))
     try:
         summary = run_scene(scene, out, resume=args.resume, emit=emit, should_stop=stop,
-                            render=not args.no_render)
+                            render=not args.no_render, files=files)
     except Interrupted as e:
         return _interrupted(stop, e)
     except SimulationError as e:
@@ -212,6 +232,29 @@ def cmd_run(args):
         print(f"{scene.name}: loss {summary['loss_initial']:.6e} -> {summary['loss_final']:.6e}, "
               f"iou {summary['iou']:.3f}")
     return 0
+
+
+def cmd_morph(args):
+    """Choose a scene from the two images, validate it, then run it like `run`, saving it as DIR/scene.toml."""
+    import dataclasses
+    import tempfile
+    from pathlib import Path
+
+    from .morph import choose
+    from .scene import load_scene
+
+    arch = [f"sim.arch={args.arch}"] if args.arch else []
+    choice = choose(args.initial, args.target, args.quality, args.loss, args.seconds, list(args.set) + arch)
+    out = Path(args.out) if args.out else Path("renders") / choice.name
+    with tempfile.TemporaryDirectory() as tmp:  # validated before anything is written
+        path = Path(tmp) / "scene.toml"
+        path.write_text(choice.text)
+        scene = load_scene(path)
+    args.loaded = dataclasses.replace(scene, path=(out / "scene.toml").resolve())
+    args.out = str(out)
+    if not args.quiet:
+        print(choice.line(args.quality), flush=True)
+    return cmd_run(args, files={"scene.toml": choice.text})
 
 
 def cmd_check(args):
@@ -291,7 +334,7 @@ def cmd_bench(args):
     return 0
 
 
-COMMANDS = {"run": cmd_run, "check": cmd_check, "render": cmd_render, "bench": cmd_bench}
+COMMANDS = {"run": cmd_run, "morph": cmd_morph, "check": cmd_check, "render": cmd_render, "bench": cmd_bench}
 
 if __name__ == "__main__":
     sys.exit(main())

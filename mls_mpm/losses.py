@@ -237,9 +237,9 @@ def seed_loss(s: ti.template(), g: ti.template()):
 
 
 def evaluate(s, f):
-    """Loss of step f: clear, splat and sum every loss grid, then the position term."""
+    """Loss of step f: clear, splat and sum every active loss grid, then the position term."""
     s.loss[None] = 0.0
-    for g in s.loss_grids:
+    for g in s.active_grids:
         g.m.fill(0.0)
         splat(s, g, f)
         if g.kind == "ot":

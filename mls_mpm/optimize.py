@@ -50,6 +50,7 @@ class OptimizeResult:
     reason: str
     grad_norms: list = field(default_factory=list)
     positions: np.ndarray = None  # final particle positions of the `positions` optimizer
+    loss_start: float = None  # the loss of the starting controls that the run is measured by (schedule.staged)
 
 
 class Progress:

@@ -23,12 +23,13 @@ from pathlib import Path
 import numpy as np
 
 from . import problem as problems, runtime
-from .checkpoint import (TEMP_GLOB, CheckpointError, OutputError, check_array, check_value, load_npz, save_json,
-                         save_npz, split_state)
+from .checkpoint import (TEMP_GLOB, CheckpointError, OutputError, atomic_write, check_array, check_value, load_npz,
+                         save_json, save_npz, split_state)
 from .errors import Interrupted
 from .images import splat_grid
 from .lock import folder_lock
 from .optimize import METHODS, PAIRS_MAX, STATE, OptimizeResult
+from .schedule import BUDGET_REASON, STAGE_STATE, Stage, staged
 from .result import STATE_KEYS, STATE_SHAPES
 from .simulator import Simulator
 
@@ -52,10 +53,11 @@ def prepare_out(out_dir):
 
 
 def fingerprint(scene):
-    """What a checkpoint must share with the scene to be resumed: all but render and the iteration budget."""
+    """What a checkpoint must share with the scene to be resumed: all but render and the iteration and time
+    budgets."""
     d = scene.to_dict()
     d.pop("render")
-    d["optimize"] = {k: v for k, v in d["optimize"].items() if k != "iterations"}
+    d["optimize"] = {k: v for k, v in d["optimize"].items() if k not in ("iterations", "max_seconds")}
     d["scene"] = {k: v for k, v in d["scene"].items() if k != "name"}
     return json.dumps(d, sort_keys=True)
 
@@ -65,12 +67,13 @@ def _initial_state(prob):
     return {"x": prob.x0, "v": np.zeros((N, 2)), "C": np.zeros((N, 2, 2)), "F": np.tile(np.eye(2), (N, 1, 1))}
 
 
-def run_scene(scene, out_dir, resume=False, emit=print, should_stop=None, render=True):
+def run_scene(scene, out_dir, resume=False, emit=print, should_stop=None, render=True, files=None):
     """Optimize a scene's controls (all rounds), write result.npz, summary.json and the renders.
 
     Returns the summary dict; summary["interrupted"] is true when should_stop() ended the run early, in
     which case checkpoint.npz holds everything needed to continue with resume=True (or, with
-    summary["render_interrupted"], the result is complete and only its rendering was stopped).
+    summary["render_interrupted"], the result is complete and only its rendering was stopped). files: {name:
+    text} written atomically into the output folder once it is created and locked (morph's scene.toml).
     """
     t0 = time.perf_counter()
     prob = problems.build(scene)
@@ -81,7 +84,21 @@ def run_scene(scene, out_dir, resume=False, emit=print, should_stop=None, render
     sim = Simulator(scene.sim, prob.x0, loss=prob.loss)  # refuses a missing backend or too little memory: nothing written
     out = prepare_out(out_dir)
     with folder_lock(out, "run"):
+        for name, text in (files or {}).items():
+            atomic_write(out / name, lambda fh, text=text: fh.write(text.encode()))
         return _run(scene, prob, sim, out, resume, emit, should_stop, render, t0)
+
+
+def stages(scene):
+    """The stages of optimize.schedule, or one stage of every loss grid."""
+    plan = scene.optimize.schedule or ({"grids": scene.loss.grids, "share": 1.0},)
+    return [Stage(tuple(s["grids"]), s["share"]) for s in plan]
+
+
+def _state_kinds(scene):
+    """What the checkpoint of this scene's optimizer holds (mls_mpm.optimize.STATE), with the stage's part."""
+    kinds = dict(STATE[scene.optimize.method])
+    return {**kinds, **STAGE_STATE} if len(stages(scene)) > 1 else kinds
 
 
 def _run(scene, prob, sim, out, resume, emit, should_stop, render, t0):
@@ -96,7 +113,7 @@ def _run(scene, prob, sim, out, resume, emit, should_stop, render, t0):
         done, starts, opt_state, elapsed = _load_checkpoint(ckpt, scene, prob)
         emit(f"resuming from {ckpt}: " + (f"round {len(done) + 1} of {opt.rounds}" if len(done) < opt.rounds
                                           else "every round is done; writing the result"))
-    method = METHODS[opt.method]
+    method = staged(METHODS[opt.method], stages(scene), opt.max_seconds, t0 - elapsed)
     while len(done) < opt.rounds:
         r = len(done)
         sim.set_initial(**starts[r])
@@ -113,6 +130,9 @@ def _run(scene, prob, sim, out, resume, emit, should_stop, render, t0):
             emit(f"interrupted: progress saved to {ckpt}; continue with --resume")
             return {"scene": scene.name, "interrupted": True, "wall_seconds": elapsed + time.perf_counter() - t0}
         done.append(res)
+        if res.reason == BUDGET_REASON:
+            emit(f"stopped at the time budget of {opt.max_seconds:g} s after {len(done)} of {opt.rounds} round(s)")
+            break
         if len(done) < opt.rounds:
             starts.append(_next_start(scene, prob, sim, starts[r], res))
         _save_checkpoint(ckpt, scene, done, starts, None, elapsed + time.perf_counter() - t0)
@@ -160,7 +180,7 @@ def _finish(scene, prob, sim, done, starts, out, wall, emit):
     losses = [L for r in done for L in r.losses]
     summary = {
         "scene": scene.name,
-        "loss_initial": done[0].losses[0],
+        "loss_initial": done[0].loss_start if done[0].loss_start is not None else done[0].losses[0],
         "loss_final": done[-1].losses[-1],
         "iou": problems.iou(problems.occupied(mass, rest), problems.occupied(target, rest)),
         "mass_outside_target": problems.mass_outside(mass, target),
@@ -276,7 +296,7 @@ def _load_checkpoint(path, scene, prob):
         opt_state = {"loss": check_value(path, "opt.loss", st.get("loss"), "float", what),
                      "controls": check_array(path, arrays, "opt_controls", "f", controls, what)}
         shapes = {"like_controls": controls, "particles": (N, 2), "pairs": (None, K * N * 4)}
-        for key, kind in STATE[opt.method].items():
+        for key, kind in _state_kinds(scene).items():
             if kind in shapes:
                 opt_state[key] = check_array(path, arrays, f"opt_{key}", "f", shapes[kind], what)
             elif kind == "per_control":
@@ -284,7 +304,7 @@ def _load_checkpoint(path, scene, prob):
             else:
                 opt_state[key] = check_value(path, f"opt.{key}", st.get(key), kind, what)
         _require_losses(path, "opt.losses", opt_state["losses"])
-        pairs = [opt_state[k] for k, kind in STATE[opt.method].items() if kind == "pairs"]
+        pairs = [opt_state[k] for k, kind in _state_kinds(scene).items() if kind == "pairs"]
         if pairs and (len({len(p) for p in pairs}) != 1 or len(pairs[0]) > PAIRS_MAX):
             raise CheckpointError(f"{path}: opt_S and opt_Y hold {len(pairs[0])} and {len(pairs[-1])} pairs: "
                                   f"expected as many of each, at most {PAIRS_MAX}; delete it or re-run")

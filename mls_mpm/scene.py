@@ -54,6 +54,8 @@ class OptimizeSettings:
     clip: float = 0.0
     adam_beta1: float = 0.9
     adam_beta2: float = 0.999
+    schedule: tuple = ()  # stages {"grids": (res, ...), "share": s}, coarse first (mls_mpm/schedule.py); (): one
+    max_seconds: float = 0.0  # wall-clock budget of the run up to its result, compile included; 0: none
 
 
 @dataclass(frozen=True)
@@ -209,7 +211,13 @@ def load_scene(path, overrides=()) -> Scene:
                         penalty_max=r.get("loss", "penalty_max"), **moves, ot_blur=r.get("loss", "ot_blur"),
                         ot_reach=r.get("loss", "ot_reach"), mass_weights=mass_weights)
 
-    optimize = OptimizeSettings(**{key: r.get("optimize", key) for key in SPEC["optimize"]})
+    opt = {key: r.get("optimize", key) for key in SPEC["optimize"]}
+    opt["schedule"] = opt["schedule"] or ()
+    for k, stage in enumerate(opt["schedule"]):
+        if not set(stage["grids"]) <= set(grids):
+            r.fail("optimize", "schedule", f"stages whose grids are among loss.grids = {toml_text(list(grids))} "
+                                           f"(stage {k + 1} has {toml_text(list(stage['grids']))})")
+    optimize = OptimizeSettings(**opt)
     render = {key: r.get("render", key) for key in SPEC["render"]}
     if render["mode"] is None:
         render["mode"] = "color" if kind == "color" else "mass"

@@ -127,6 +127,26 @@ def _floats_nonnegative():
     return read, "a non-empty list of numbers >= 0"
 
 
+def _schedule():
+    grids = _ints(MIN_LOSS_GRID)[0]
+    share = _num(lambda x: x > 0, "")[0]
+
+    def read(v):
+        if not isinstance(v, list) or not v:
+            return None
+        out = []
+        for stage in v:
+            if not isinstance(stage, dict) or set(stage) - {"grids", "share"} or "grids" not in stage:
+                return None
+            g, sh = grids(stage["grids"]), share(stage.get("share", 1.0))
+            if g is None or sh is None:
+                return None
+            out.append({"grids": g, "share": sh})
+        return tuple(out)
+    return read, ("a non-empty list of stages {grids = [loss-grid resolutions], share = a number > 0 (default 1)}, "
+                  "coarse grids first")
+
+
 def _penalty():
     num = _num(lambda x: x == 0 or x >= 1, "")[0]
 
@@ -194,6 +214,8 @@ SPEC = {
         "clip": (0.0, _num(lambda x: x >= 0, "a number >= 0 (0: no clipping)")),
         "adam_beta1": (0.9, _num(lambda x: 0 <= x < 1, "a number in [0, 1)")),
         "adam_beta2": (0.999, _num(lambda x: 0 <= x < 1, "a number in [0, 1)")),
+        "schedule": (None, _schedule()),
+        "max_seconds": (0.0, _num(lambda x: x >= 0, "a number >= 0 (seconds of wall-clock time; 0: no budget)")),
     },
     "render": {
         "every": (5, _int(1)),

@@ -102,6 +102,19 @@ class Simulator:
         self._stored = 0
         self._forward_done = self._backward_done = False
 
+    def set_active_grids(self, resolutions=None):
+        """Sum only the loss grids of these resolutions from the next forward on (None: every grid); a stage of
+        optimize.schedule. Refuses a resolution the loss has no grid of."""
+        grids = self.fields.loss_grids
+        if resolutions is None:
+            self.fields.active_grids = list(grids)
+        else:
+            missing = set(resolutions) - {g.res for g in grids}
+            if missing:
+                raise ValueError(f"resolutions {sorted(missing)}: this loss has grids of {sorted({g.res for g in grids})}")
+            self.fields.active_grids = [g for g in grids if g.res in set(resolutions)]
+        self._forward_done = self._backward_done = False
+
     @_live
     def forward(self, controls, start=0):
         """Run steps start..N_t-1 with controls (K, N, 2, 2) of F_pc and return the loss of step N_t.

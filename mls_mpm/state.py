@@ -110,6 +110,7 @@ class State:
                      blur=lg.blur, reach=lg.reach, tol=lg.tol)
             for lg in loss_grids
         ]
+        self.active_grids = list(self.loss_grids)  # the loss grids whose terms the loss sums (schedule stages)
 
     def clear_faults(self):
         self.fault.from_numpy(np.full(2, FAULT_NONE, dtype=np.int64))

@@ -1,0 +1,191 @@
+"""`mls-mpm morph INITIAL TARGET`: a complete scene chosen from two shapes, no scene file needed.
+
+The choices, each written into the scene file the run saves (DIR/scene.toml), so `mls-mpm run DIR/scene.toml`
+reproduces the run and a user can edit it:
+- the thesis program's material on the grid of the quality preset (E = 90000 dx^2, nu 0.3, density 40, drag
+  0.5, dt = 1/120, no gravity: the shipped thesis scenes' settings at any n_grid);
+- steps long enough for the distance the mass has to travel: the optimal assignment of a subsample of the
+  initial particles to as many target particles (scipy's linear_sum_assignment, the exact discrete transport
+  plan) gives every particle's distance; the plan's 90th percentile d is travelled at a peak speed of
+  SPEED cells per step (a quarter cell: well inside the CFL limit of one cell), accelerating and braking, in
+  2 d / speed steps, plus SETTLE steps to come to rest, rounded up to the control stride, within
+  [MIN_STEPS, MAX_STEPS];
+- the loss: optimal transport (loss.kind = "ot") on the coarse grid, which pulls material wherever it is,
+  and the eq 11 mass loss on the fine grid, which shapes the detail; each term weighted by 1 / its value at
+  rest, so both start at 1 whatever the shapes' sizes; a coarse stage (OT alone) first, then both
+  (optimize.schedule). Colour images (`--loss color`, or two images of more than one colour region each):
+  the colour loss (eq 13) on the coarse and fine grids, coarse first;
+- L-BFGS, the quality's iteration count and time budget (optimize.max_seconds).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from .errors import UserError
+from .images import ImageError, check_image, load_image, material, sample_particles, splat_grid
+from .losses import OT_BLUR
+from .ot import sinkhorn_divergence
+from .scene_keys import NAME_MAX, parse_override, toml_text, valid_name
+
+SPEED = 0.25  # peak material speed, cells per step
+SETTLE = 40  # steps after the travel for the body to come to rest
+MIN_STEPS, MAX_STEPS = 100, 400
+PLAN_SAMPLES = 600  # particles of each shape in the transport plan that sets the number of steps
+PLAN_QUANTILE = 0.9  # the distance of the plan the steps are made for
+E_CELLS = 90000.0  # the thesis program's Young's modulus in cell units; E = E_CELLS dx^2
+DT = 1.0 / 120.0
+STRIDE = 10
+COLOR_SHARE = 0.05  # a colour region holds at least this fraction of an image's material pixels
+COLOR_LEVELS = 4  # levels per channel when colours are counted
+
+
+@dataclass(frozen=True)
+class Quality:
+    n_grid: int  # simulation grid; the fine loss grid is the same, the coarse one half of it
+    iterations: int  # L-BFGS iterations over all stages
+    max_seconds: float  # the default time budget (0: none)
+    particles_per_cell: int = 4
+
+
+QUALITIES = {
+    "fast": Quality(n_grid=32, iterations=30, max_seconds=25.0),
+    "default": Quality(n_grid=64, iterations=80, max_seconds=110.0),
+    "best": Quality(n_grid=64, iterations=250, max_seconds=0.0),
+}
+
+
+class MorphError(UserError):
+    """Bad input to `mls-mpm morph`: one line naming the file or option."""
+
+
+@dataclass(frozen=True)
+class Choice:
+    """The scene text and what the choices were made from (for the one-line report)."""
+
+    text: str
+    name: str
+    distance: float  # the plan's PLAN_QUANTILE distance, domain units
+    speed: float  # peak speed, domain units per second
+    steps: int
+    loss: str
+
+    def line(self, q: str) -> str:
+        return (f"morph ({q}): {self.loss} loss; travel {self.distance:.3f} (90% of the transport plan) at up to "
+                f"{self.speed:.3g}/s (CFL-safe {SPEED} cell/step) -> {self.steps} steps")
+
+
+def _image(path, what):
+    p = Path(path).expanduser()
+    try:
+        check_image(p)
+        rgba = load_image(p)
+    except ImageError as e:
+        raise MorphError(f"{what} {path}: expected an image file ({str(e).split(': ', 1)[-1]})") from None
+    if not material(rgba).any():
+        raise MorphError(f"{what} {path}: the image has no material (opaque, non-white pixels); expected a shape")
+    return p.resolve(), rgba
+
+
+def color_regions(rgba) -> int:
+    """How many colours hold at least COLOR_SHARE of the material pixels (colours quantised per channel)."""
+    rgb = rgba[material(rgba)][:, :3]
+    q = np.minimum((rgb * COLOR_LEVELS).astype(int), COLOR_LEVELS - 1)
+    _, counts = np.unique(q[:, 0] * COLOR_LEVELS ** 2 + q[:, 1] * COLOR_LEVELS + q[:, 2], return_counts=True)
+    return int(np.count_nonzero(counts >= COLOR_SHARE * len(rgb)))
+
+
+def _overrides(sets):
+    """--set values as {(section, key): value}, parsed as in a scene (errors name the --set)."""
+    return {(s, k): v for s, k, v in (parse_override(t) for t in sets)}
+
+
+def travel_distance(x0, xt, seed=0) -> float:
+    """The PLAN_QUANTILE distance of the exact transport plan between subsamples of two particle sets."""
+    from scipy.optimize import linear_sum_assignment
+
+    rng = np.random.default_rng(seed)
+    n = min(PLAN_SAMPLES, len(x0), len(xt))
+    a = x0[rng.choice(len(x0), n, replace=False)]
+    b = xt[rng.choice(len(xt), n, replace=False)]
+    cost = ((a[:, None, :] - b[None, :, :]) ** 2).sum(-1)
+    rows, cols = linear_sum_assignment(cost)
+    return float(np.quantile(np.sqrt(cost[rows, cols]), PLAN_QUANTILE))
+
+
+def choose(initial, target, quality="default", loss="auto", seconds=None, sets=()) -> Choice:
+    """The scene for morphing image `initial` into image `target` (MorphError on bad input)."""
+    if quality not in QUALITIES:
+        raise MorphError(f"--quality {quality}: expected one of {', '.join(QUALITIES)}")
+    q = QUALITIES[quality]
+    p0, rgba0 = _image(initial, "INITIAL")
+    pt, rgbat = _image(target, "TARGET")
+    given = _overrides(sets)
+    n = int(given.get(("sim", "n_grid"), q.n_grid)) if isinstance(given.get(("sim", "n_grid"), q.n_grid), int) \
+        else q.n_grid
+    ppc = given.get(("sim", "particles_per_cell"), q.particles_per_cell)
+    ppc = ppc if isinstance(ppc, int) and 1 <= ppc <= 1024 else q.particles_per_cell
+    try:
+        x0, c0 = sample_particles(rgba0, n, ppc)
+        xt, ct = sample_particles(rgbat, n, ppc)
+    except ImageError as e:
+        raise MorphError(f"INITIAL {initial} or TARGET {target}: {e}; use larger shapes or a finer --set "
+                         "sim.n_grid") from None
+    use_color = loss == "color" or (loss == "auto" and color_regions(rgba0) > 1 and color_regions(rgbat) > 1)
+    dx = 1.0 / n
+    distance = travel_distance(x0, xt)
+    speed = SPEED * dx / DT
+    steps = 2.0 * distance / (SPEED * dx) + SETTLE
+    steps = int(min(max(STRIDE * math.ceil(steps / STRIDE), MIN_STEPS), MAX_STEPS))
+    density = 40.0
+    m_p = density * dx * dx / ppc
+    m_t = m_p * len(x0) / len(xt)
+    coarse, fine = max(8, n // 2), n
+    sections = {
+        "scene": {"name": _name(p0, pt), "initial": str(p0), "target": str(pt)},
+        "sim": {"n_grid": n, "steps": steps, "dt": DT, "E": E_CELLS * dx * dx, "nu": 0.3, "density": density,
+                "gamma": 0.5, "gravity": [0.0, 0.0], "particles_per_cell": ppc},
+        "control": {"stride": STRIDE},
+        "optimize": {"method": "lbfgs", "iterations": q.iterations,
+                     "max_seconds": q.max_seconds if seconds is None else float(seconds)},
+    }
+    if use_color:
+        kind = "color"
+        values = [0.5 * float(np.sum((splat_grid(x0, m_p, r, c0) - splat_grid(xt, m_t, r, ct)) ** 2))
+                  for r in (coarse, fine)]
+        sections["loss"] = {"kind": "color", "grids": [coarse, fine], "weights": [_weight(v) for v in values]}
+    else:
+        kind = "ot + mass"
+        ot_value = sinkhorn_divergence(splat_grid(x0, m_p, coarse), splat_grid(xt, m_t, coarse),
+                                       OT_BLUR / coarse).value
+        mass_value = 0.5 * float(np.sum((splat_grid(x0, m_p, fine) - splat_grid(xt, m_t, fine)) ** 2))
+        sections["loss"] = {"kind": "ot", "grids": [coarse, fine], "weights": [_weight(ot_value), 0.0],
+                            "mass_weights": [0.0, _weight(mass_value)], "ot_blur": OT_BLUR}
+    sections["optimize"]["schedule"] = [{"grids": [coarse], "share": 1.0}, {"grids": [coarse, fine], "share": 2.0}]
+    for (section, key), value in given.items():
+        sections.setdefault(section, {})[key] = value
+    text = _toml(sections, quality, kind)
+    return Choice(text, sections["scene"]["name"], distance, speed, steps, kind)
+
+
+def _weight(value) -> float:
+    """1 / value, to 4 significant digits (1 for a term that is already zero)."""
+    return float(f"{1.0 / value:.4g}") if value > 0 else 1.0
+
+
+def _name(p0, pt) -> str:
+    name = f"morph_{p0.stem}_to_{pt.stem}"
+    name = "".join(c if c.isalnum() or c in "_.-" else "_" for c in name)[:NAME_MAX]
+    return name if valid_name(name) else "morph"
+
+
+def _toml(sections, quality, kind) -> str:
+    lines = [f"# Written by `mls-mpm morph --quality {quality}` ({kind} loss); `mls-mpm run` this file to reproduce "
+             "the run, or edit it (keys: scenes/README.md)."]
+    for section, table in sections.items():
+        lines.append(f"\n[{section}]")
+        lines += [f"{key} = {toml_text(value)}" for key, value in table.items()]
+    return "\n".join(lines) + "\n"
