@@ -265,7 +265,8 @@ def test_quick_suite_with_faked_morphs_writes_the_table_and_csv(tmp_path, monkey
     assert "- 1 of 3 pairs meet the target; 1 did not finish" in md
     assert f"- command: `mls-mpm bench quality --quick --quality fast --workers 2 --out {out} --set " \
            "sim.n_grid=32`" in md
-    assert "- CPU: " in md and "iou >= 0.80, wall <= 30 s" in md
+    assert md.startswith("`mls-mpm morph --quality fast` on 3 shape pairs (scenes/images/pairs/), 2 at a time, ")
+    assert "- CPU: " in md and "Target per pair: iou >= 0.80, wall <= 30 s (wall: the whole process" in md
     with open(out / "quality.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))
     assert [r["pair"] for r in rows] == list(QUICK)

@@ -65,7 +65,7 @@ PAIRS = (
     Pair("letter_C", "letter", "disk to a C (round strokes)"),
     Pair("letter_S", "letter", "square to an S (round strokes)"),
     Pair("letter_A", "letter", "disk to an A with its hole"),
-    Pair("color_bar_to_disk", "colour", "red|blue bar to a blue|red disk: colours trade sides"),
+    Pair("color_bar_to_disk", "colour", "red-blue bar to a blue-red disk: colours trade sides"),
 )
 QUICK = ("corner_disk", "split_two", "letter_T")  # --quick: one move, one split, one glyph, at --quality fast
 
@@ -199,6 +199,10 @@ def _num(v, fmt=".3f"):
     return "-" if v is None else format(v, fmt)
 
 
+def _count(n, noun):
+    return f"{n} {noun}{'' if n == 1 else 's'}"
+
+
 def _cell(text):
     return str(text).replace("|", "\\|")
 
@@ -207,9 +211,9 @@ def table(rows, quality, workers, threads, command):
     """quality.md: the settings line, one row per pair, the suite's worst and median, the CPU and the command."""
     target = TARGETS[quality]
     n_pass = sum(r["result"] == "pass" for r in rows)
-    lines = [f"`mls-mpm morph --quality {quality}` on {len(rows)} shape pairs (scenes/images/pairs/), {workers} "
-             f"pair(s) at a time, {threads} Taichi thread(s) each. Target per pair: {target.describe()} (wall: the "
-             "whole process, start-up and compilation included).", "",
+    lines = [f"`mls-mpm morph --quality {quality}` on {_count(len(rows), 'shape pair')} (scenes/images/pairs/), "
+             f"{workers} at a time, {_count(threads, 'Taichi thread')} each. Target per pair: {target.describe()} "
+             "(wall: the whole process, start-up and compilation included).", "",
              "| pair | tests | iou | mass_error | mass outside | colour error | wall s | result |",
              "|---|---|---|---|---|---|---|---|"]
     for r in rows:
@@ -227,7 +231,7 @@ def table(rows, quality, workers, threads, command):
     failed = sum(r["result"].startswith("error") for r in rows)
     lines.append(f"- {n_pass} of {len(rows)} pairs meet the target" +
                  (f"; {failed} did not finish (their error is in the table)" if failed else ""))
-    lines.append(f"- CPU: {cpu_model()}, {len(os.sched_getaffinity(0))} core(s) available")
+    lines.append(f"- CPU: {cpu_model()}, {_count(len(os.sched_getaffinity(0)), 'core')} available")
     lines.append(f"- command: `{command}`")
     return "\n".join(lines) + "\n"
 
@@ -262,8 +266,8 @@ def bench_quality(quality=None, quick=False, workers=1, out=None, names=None, ov
     out = writable_folder(out or DEFAULT_OUT)
     threads = threads_per_worker(workers)
     command = command_line(quality, quick, workers, out, names, overrides)
-    emit(f"quality benchmark: {len(pairs)} pairs at --quality {quality}, {workers} at a time with {threads} "
-         f"thread(s) each -> {out}")
+    emit(f"quality benchmark: {_count(len(pairs), 'pair')} at --quality {quality}, {workers} at a time with "
+         f"{_count(threads, 'thread')} each -> {out}")
     rows = {}
     with ThreadPoolExecutor(max_workers=workers) as pool:
         running = {pool.submit(run_pair, p, out / p.name, quality, threads, overrides): p for p in pairs}
