@@ -269,8 +269,9 @@ def bench_quality(quality=None, quick=False, workers=1, out=None, names=None, ov
     emit(f"quality benchmark: {_count(len(pairs), 'pair')} at --quality {quality}, {workers} at a time with "
          f"{_count(threads, 'thread')} each -> {out}")
     rows = {}
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        running = {pool.submit(run_pair, p, out / p.name, quality, threads, overrides): p for p in pairs}
+    pool = ThreadPoolExecutor(max_workers=workers)
+    try:
+        running = [pool.submit(run_pair, p, out / p.name, quality, threads, overrides) for p in pairs]
         for done, future in enumerate(as_completed(running), 1):
             row = future.result()
             row["result"] = judge(row, TARGETS[quality])
@@ -278,6 +279,8 @@ def bench_quality(quality=None, quick=False, workers=1, out=None, names=None, ov
             emit(f"[{done}/{len(pairs)}] {row['pair']:<18s} iou {_num(row.get('iou')):>5s}  mass_error "
                  f"{_num(row.get('mass_error')):>5s}  outside {_num(row.get('mass_outside_target')):>5s}  "
                  f"{row['wall_seconds']:6.1f} s  {row['result']}")
+    finally:  # Ctrl-C: pairs not yet started are dropped; running ones got the signal too (same process group)
+        pool.shutdown(wait=True, cancel_futures=True)
     rows = [rows[p.name] for p in pairs]
     md = table(rows, quality, workers, threads, command)
     atomic_write(out / "quality.md", lambda fh: fh.write(md.encode()))
