@@ -11,7 +11,9 @@ from PIL import Image
 
 from mls_mpm import ColorLoss, MassLoss, OTLoss, PositionLoss
 from mls_mpm.images import splat_grid
-from mls_mpm.problem import build, color_error, iou, mass_error, mass_outside, occupied, rest_node_mass
+from mls_mpm.memory import loss_grid_shapes
+from mls_mpm.problem import (build, color_error, iou, loss_grids, mass_error, mass_outside, occupied,
+                             rest_node_mass)
 from mls_mpm.scene import SceneError, load_scene
 from mls_mpm.scene_keys import SPEC, toml_text, parse_override
 
@@ -141,6 +143,7 @@ def test_ot_scene_is_read_and_builds_an_ot_loss(scene_dir):
     assert (ot.blur, ot.reach) == (1.25, 0.3)
     np.testing.assert_array_equal(ot.target[..., 0], p.target_mass_grids[0])
     np.testing.assert_array_equal(mass.target[..., 0], p.target_mass_grids[1])
+    assert loss_grids(ls) == loss_grid_shapes(p.loss) == [(16, 1, False), (32, 1, False)]  # the memory check's
     balanced = build(load_scene(write(scene_dir, edit(BASE, "loss", 'kind = "ot"'))))
     assert [(g.kind, g.res, g.weight, g.blur, g.reach) for g in balanced.loss.grids] == [("ot", 32, 1.0, 2.0, None)]
 
