@@ -27,7 +27,7 @@ class Part:
 
 
 def loss_grid_shapes(loss):
-    """(res, channels, has_alpha) of each loss grid of a PositionLoss, MassLoss or ColorLoss (or None)."""
+    """(res, channels, has_alpha) of each loss grid of a PositionLoss, MassLoss, ColorLoss or OTLoss (or None)."""
     return [(g.res, g.target.shape[-1] if g.target.ndim == 3 else 1, g.alpha is not None)
             for g in (loss.grids if loss is not None else ())]
 
@@ -56,7 +56,8 @@ def parts(cfg, n_particles, grids=(), position_loss=False, tape=False):
     if grids:
         field = numpy = 0
         for res, ch, has_alpha in grids:
-            # m (and its grad under the Tape, else the adjoint dL/dm), target, alpha; numpy: target, alpha in f64
+            # m (and its grad under the Tape, else the adjoint dL/dm), target (OT grids: the seed dL/dm), alpha;
+            # numpy: target, alpha in f64 (OT grids keep theirs in numpy; their Sinkhorn work arrays are transient)
             field += res * res * (3 * ch + has_alpha) * w
             numpy += res * res * (ch + has_alpha) * F64
         numpy += max(res * res * ch for res, ch, _ in grids) * w  # the upload's cast copy of one target

@@ -14,21 +14,23 @@ Tape(validation=True) is not used here: Taichi only checks the global data acces
 ti.init(debug=True), and this session runs without debug (re-initialising would invalidate every other test's
 fields). test_gradients.py::test_forward_kernels_pass_tape_validation runs that check in a subprocess (slow).
 """
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 import taichi as ti
 
 from adjoint.grid import grid_op_reverse
-from adjoint.losses import evaluate_reverse, grid_loss_reverse, position_loss_reverse, splat_reverse
+from adjoint.losses import evaluate_reverse, grid_loss_reverse, ot_loss_reverse, position_loss_reverse, splat_reverse
 from adjoint.material import stress_reverse
 from adjoint.state import AdjointState, zero_step
 from adjoint.step import run_serial_reverse, substep_reverse
 from adjoint.transfer import g2p_reverse, p2g_reverse
 from conftest import max_rel_err, rel_err
-from mls_mpm import ColorLoss, MassLoss, SimConfig, losses
+from mls_mpm import ColorLoss, MassLoss, OTLoss, SimConfig, losses, ot
 from mls_mpm.grid import grid_op
 from mls_mpm.material import stress
-from mls_mpm.state import State
+from mls_mpm.state import State, upload_loss
 from mls_mpm.step import run_serial, substep
 from mls_mpm.transfer import g2p, p2g
 
@@ -631,3 +633,113 @@ def test_seed_sums_every_loss_and_zeroes_the_rest(loss_pair):
     for name in ("adj_v", "adj_C", "adj_F"):
         assert np.all(getattr(a, name).to_numpy() == 0.0), name
     assert np.all(a.adj_grid_v.to_numpy() == 0.0)
+
+
+# ------------------------------------------------------------------ the optimal-transport loss seed
+def ot_specs(rng):
+    """OTLoss grids: a balanced transport term on 16 (w = 2) beside eq 11 on 8 (transport weight 0, mass weight 3),
+    and an unbalanced transport term on 8 (reach 0.3, w = 0.5)."""
+    t16 = rng.uniform(0.0, 2.0, (16, 16)) * 1e-3
+    t8 = rng.uniform(0.0, 2.0, (8, 8)) * 4e-3
+    return (OTLoss([t16, t8], weights=[2.0, 0.0], mass_weights=[0.0, 3.0], blur=1.5).grids
+            + OTLoss([t8], weights=[0.5], blur=1.0, reach=0.3).grids)
+
+
+@pytest.fixture(scope="module")
+def ot_pair():
+    rng = np.random.default_rng(31)
+    specs = ot_specs(rng)
+    assert [(g.kind, g.res) for g in specs] == [("ot", 16), ("mass", 8), ("ot", 8)]
+    pair = Pair(SimConfig(**KERNEL_CFG), loss_grids=specs)
+    for st in (pair.t, pair.s):
+        upload_loss(st, SimpleNamespace(grids=specs))
+    pair.randomize(rng)
+    pair.specs = specs
+    return pair
+
+
+@pytest.mark.parametrize("gi", [0, 2], ids=["ot 16 w=2", "ot 8 reach=0.3 w=0.5"])
+def test_ot_loss_seed_matches_tape(ot_pair, gi):
+    """ot_loss_reverse (dL/dm_i = the seed w dS/dm_i that ot_loss wrote) and splat_reverse vs Tape on splat +
+    seed_loss (sum_i seed_i m_i, the Tape's linear stand-in, with the seed ot_loss writes in the grad State):
+    dL/dm_i per node and dL/dx_p^{N_t}, rel err <= 1e-8.
+
+    The seed itself must be w times ot.sinkhorn_divergence(m, m_u, blur / res, reach).grad computed here from the
+    node masses read back (rel err <= 1e-12), and the loss w S: this checks the plumbing, not the formula
+    (tests/test_ot.py checks the divergence and its gradient).
+    """
+    pair, f = ot_pair, 3
+    s, t, a = pair.s, pair.t, pair.a
+    g, tg, spec = s.loss_grids[gi], t.loss_grids[gi], pair.specs[gi]
+    s.loss[None] = 0.0
+    g.m.fill(0.0)
+    losses.splat(s, g, f)
+    value = losses.ot_loss(s, g)
+    seed = g.seed.to_numpy()
+
+    m = g.m.to_numpy()[..., 0]
+    r = ot.sinkhorn_divergence(m, spec.target[..., 0], spec.blur / spec.res, spec.reach, tol=spec.tol)
+    assert rel_err(seed[..., 0], spec.weight * r.grad) <= 1e-12
+    assert rel_err(value, spec.weight * r.value) <= 1e-12 and s.loss[None] == value
+    assert np.any(seed != 0.0)
+
+    rng = np.random.default_rng(40 + gi)
+    g.adj_m.from_numpy(rng.standard_normal(seed.shape))  # ot_loss_reverse owns dL/dm_i: it overwrites it
+    ot_loss_reverse(s, g)
+    assert np.array_equal(g.adj_m.to_numpy(), seed)
+
+    # the Tape oracle's way (mls_mpm/tape.py): ot_loss on the grad State's own masses leaves the seed, then the
+    # taped pass differentiates seed_loss
+    t.loss[None] = 0.0
+    tg.m.fill(0.0)
+    losses.splat(t, tg, f)
+    losses.ot_loss(t, tg)
+    assert rel_err(tg.seed.to_numpy(), seed) <= 1e-12
+    tg.m.fill(0.0)
+    with ti.ad.Tape(loss=t.loss):
+        losses.splat(t, tg, f)
+        losses.seed_loss(t, tg)
+    tape_x = t.x.grad.to_numpy()[f]
+    assert max_rel_err(g.adj_m.to_numpy(), tg.m.grad.to_numpy()) <= TOL
+
+    b = pair.prefill(rng, ["adj_x"], {"adj_x": np.stack([tape_x] * 2)})
+    splat_reverse(s, g, a, f)
+    assert rel_err(a.adj_x.to_numpy()[f % 2] - b["adj_x"][f % 2], tape_x) <= TOL
+    assert np.array_equal(a.adj_x.to_numpy()[1 - f % 2], b["adj_x"][1 - f % 2])
+
+
+def test_evaluate_reverse_on_ot_and_mass_grids(ot_pair):
+    """losses.evaluate on OTLoss grids (ot_loss on the transport grids, grid_loss on the eq 11 grid) and its twin
+    evaluate_reverse (ot_loss_reverse or grid_loss_reverse, then splat_reverse on each) vs one Tape of splat and
+    seed_loss / grid_loss over all three grids: dL/dx_p rel err <= 1e-8. The loss is sum_g w_g S_g (computed
+    here with ot.sinkhorn_divergence) plus eq 11, rel err <= 1e-12."""
+    pair, f = ot_pair, 3
+    s, t, a = pair.s, pair.t, pair.a
+    L = losses.evaluate(s, f)
+    expected = 0.0
+    for g, spec in zip(s.loss_grids, pair.specs):
+        m = g.m.to_numpy()[..., 0]
+        if g.kind == "ot":
+            r = ot.sinkhorn_divergence(m, spec.target[..., 0], spec.blur / spec.res, spec.reach, tol=spec.tol)
+            expected += spec.weight * r.value
+        else:
+            expected += 0.5 * spec.weight * np.sum((m - spec.target[..., 0]) ** 2)
+    assert rel_err(L, expected) <= 1e-12
+
+    t.loss[None] = 0.0
+    for g, tg in zip(s.loss_grids, t.loss_grids):
+        tg.m.fill(0.0)
+        if g.kind == "ot":
+            tg.seed.from_numpy(g.seed.to_numpy())
+    with ti.ad.Tape(loss=t.loss):
+        for tg in t.loss_grids:
+            losses.splat(t, tg, f)
+            if tg.kind == "ot":
+                losses.seed_loss(t, tg)
+            else:
+                losses.grid_loss(t, tg)
+    tape_x = t.x.grad.to_numpy()[f]
+    pair.prefill(np.random.default_rng(41), ["adj_x"], {"adj_x": np.stack([tape_x] * 2)})
+    evaluate_reverse(s, a, f)
+    assert rel_err(a.adj_x.to_numpy()[f % 2], tape_x) <= TOL
+    assert np.all(a.adj_x.to_numpy()[1 - f % 2] == 0.0)

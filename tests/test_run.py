@@ -24,8 +24,8 @@ from mls_mpm.simulator import Simulator
 
 TINY = Path(__file__).resolve().parent / "data" / "tiny.toml"
 BASE = ["optimize.iterations=3", "optimize.tol=0.0", "sim.schedule=serial"]  # serial: a bit-identical replay
-SUMMARY_KEYS = {"scene", "loss_initial", "loss_final", "iou", "mass_outside_target", "iterations", "converged",
-                "wall_seconds", "settings"}
+SUMMARY_KEYS = {"scene", "loss_initial", "loss_final", "iou", "mass_outside_target", "mass_error", "iterations",
+                "converged", "wall_seconds", "settings"}
 
 
 def quiet(*_):
@@ -102,6 +102,8 @@ def test_summary_has_sensible_values(runs):
     assert summary["settings"] == scene.to_dict() and summary["settings"]["optimize"]["iterations"] == 3
     assert 0.0 < summary["wall_seconds"] < 600.0
     assert 0.0 <= summary["mass_outside_target"] <= 1.0
+    assert 0.0 <= summary["mass_error"] <= 1.0
+    assert "color_error" not in summary  # colour scenes only
 
 
 def test_summary_iou_is_that_of_the_final_shape(runs):
@@ -120,6 +122,8 @@ def test_summary_iou_is_that_of_the_final_shape(runs):
     assert iou_of(arrays["init_x"][0]) != summary["iou"]  # (the initial shape scores differently: 0.86 vs 0.81)
     assert summary["mass_outside_target"] == problem.mass_outside(splat_grid(arrays["final_x"], cfg.m_p, res),
                                                                   arrays["target_grid"])
+    assert summary["mass_error"] == problem.mass_error(splat_grid(arrays["final_x"], cfg.m_p, res),
+                                                       arrays["target_grid"])
 
 
 def test_result_replays_to_the_reported_loss(runs):

@@ -9,9 +9,11 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from mls_mpm import ColorLoss, MassLoss, PositionLoss
+from mls_mpm import ColorLoss, MassLoss, OTLoss, PositionLoss
 from mls_mpm.images import splat_grid
-from mls_mpm.problem import build, iou, mass_outside, occupied, rest_node_mass
+from mls_mpm.memory import loss_grid_shapes
+from mls_mpm.problem import (build, color_error, iou, loss_grids, mass_error, mass_outside, occupied,
+                             rest_node_mass)
 from mls_mpm.scene import SceneError, load_scene
 from mls_mpm.scene_keys import SPEC, toml_text, parse_override
 
@@ -126,6 +128,26 @@ def test_position_scene_and_scalar_scale(scene_dir):
     assert s.target is None and s.loss.target_scale == (1.5, 1.5) and s.loss.target_offset == (0.0, 0.05)
 
 
+def test_ot_scene_is_read_and_builds_an_ot_loss(scene_dir):
+    """kind "ot": a grid with weight 0 keeps only its eq 11 term, a grid with mass weight 0 only its transport term;
+    the OTLoss holds one GridSpec per term, with ot_blur, ot_reach and the target grids build() made."""
+    s = load_scene(write(scene_dir, edit(BASE, "loss", 'kind = "ot"\ngrids = [16, 32]\nweights = [1.5, 0]\n'
+                                                       'mass_weights = [0, 2]\not_blur = 1.25\not_reach = 0.3')))
+    ls = s.loss
+    assert (ls.kind, ls.grids, ls.weights, ls.mass_weights, ls.ot_blur, ls.ot_reach) == \
+        ("ot", (16, 32), (1.5, 0.0), (0.0, 2.0), 1.25, 0.3)
+    p = build(s)
+    assert isinstance(p.loss, OTLoss)
+    assert [(g.kind, g.res, g.weight) for g in p.loss.grids] == [("ot", 16, 1.5), ("mass", 32, 2.0)]
+    ot, mass = p.loss.grids
+    assert (ot.blur, ot.reach) == (1.25, 0.3)
+    np.testing.assert_array_equal(ot.target[..., 0], p.target_mass_grids[0])
+    np.testing.assert_array_equal(mass.target[..., 0], p.target_mass_grids[1])
+    assert loss_grids(ls) == loss_grid_shapes(p.loss) == [(16, 1, False), (32, 1, False)]  # the memory check's
+    balanced = build(load_scene(write(scene_dir, edit(BASE, "loss", 'kind = "ot"'))))
+    assert [(g.kind, g.res, g.weight, g.blur, g.reach) for g in balanced.loss.grids] == [("ot", 32, 1.0, 2.0, None)]
+
+
 def test_paths_are_relative_to_the_scene_file(scene_dir, monkeypatch):
     path = write(scene_dir, BASE)
     monkeypatch.chdir(scene_dir / "img")
@@ -224,11 +246,12 @@ REFUSALS = [
     ("optimize", "lr = [1979-05-27]", r"optimize\.lr = \[1979-05-27\]: expected a number > 0"),
     ("scene", 'target_density = "same"', r'scene\.target_density = "same": expected one of "match", "own"'),
     ("scene", "region = [0.2, 0.2]", r"scene\.region = \[0\.2, 0\.2\]: expected \[x0, y0, x1, y1\]"),
-    ("loss", 'kind = "masss"', r'loss\.kind = "masss": expected one of "position", "mass", "log_mass", "color"'),
+    ("loss", 'kind = "masss"', r'loss\.kind = "masss": expected one of "position", "mass", "log_mass", "color", "ot"$'),
     ("loss", "grids = [32.0]", r"loss\.grids = \[32\.0\]: expected a non-empty list of integers >= 4"),
     ("loss", "grids = 32", r"loss\.grids = 32: expected a non-empty list"),
     ("loss", "grids = []", r"loss\.grids = \[\]: expected a non-empty list"),
-    ("loss", 'weights = ["a"]', r'loss\.weights = \["a"\]: expected a non-empty list of numbers > 0'),
+    ("loss", 'weights = ["a"]', r'loss\.weights = \["a"\]: expected a non-empty list of numbers >= 0$'),
+    ("loss", 'kind = "ot"\nmass_weights = ["a"]', r'loss\.mass_weights = \["a"\]: expected a non-empty list of numbers >= 0$'),
     ("optimize", "carry_state = 1", r"optimize\.carry_state = 1: expected true or false"),
     ("optimize", 'method = "sgd"', r'optimize\.method = "sgd": expected one of "gd", "adam", "lbfgs", "positions"'),
     ("optimize", 'step = "big"', r'optimize\.step = "big": expected one of "normalized", "raw"'),
@@ -262,11 +285,26 @@ REFUSALS = [
                                                r"with 0\.03125 <= x0 < x1 <= 0\.9375"),
     ("scene", "region = [0.5, 0.2, 0.4, 0.8]", r"scene\.region = .*: expected \[x0, y0, x1, y1\] with"),
     ("loss", "grids = [3]", r"loss\.grids = \[3\]: expected a non-empty list of integers >= 4"),
-    ("loss", "weights = [1.0, 0.0]", r"loss\.weights = \[1\.0, 0\.0\]: expected a non-empty list of numbers > 0"),
+    ("loss", "weights = [0.0]", r'loss\.weights = \[0\.0\]: expected a non-empty list of numbers > 0 \(0 is allowed only '
+                                r'with loss\.kind = "ot"'),
+    ("loss", "weights = [-1.0]", r"loss\.weights = \[-1\.0\]: expected a non-empty list of numbers >= 0$"),
+    ("loss", 'kind = "ot"\nweights = [1.0, -0.5]', r"loss\.weights = \[1\.0, -0\.5\]: expected a non-empty list of "
+                                                  r"numbers >= 0$"),
     ("loss", "weights = [1.0, 2.0]", r"loss\.weights = \[1\.0, 2\.0\]: expected one weight per loss grid \(1: "
                                      r"loss\.grids = \[32\]\)"),
     ("loss", "penalty = 0.5", r"loss\.penalty = 0\.5: expected 0 \(no penalty grid\), a number >= 1"),
     ("loss", "penalty_max = 0.5", r"loss\.penalty_max = 0\.5: expected a number >= 1"),
+    ("loss", 'kind = "ot"\not_blur = 0.2', r"loss\.ot_blur = 0\.2: expected a number in \[0\.25, 64\] \(cells of each "
+                                        r"loss grid\)$"),
+    ("loss", 'kind = "ot"\not_blur = 65', r"loss\.ot_blur = 65: expected a number in \[0\.25, 64\]"),
+    ("loss", 'kind = "ot"\not_blur = nan', r"loss\.ot_blur = nan: expected a number in \[0\.25, 64\]"),
+    ("loss", 'kind = "ot"\not_reach = 0', r"loss\.ot_reach = 0: expected a number > 0 \(domain units; leave it out "
+                                       r"for balanced transport\)$"),
+    ("loss", 'kind = "ot"\not_reach = -0.3', r"loss\.ot_reach = -0\.3: expected a number > 0"),
+    ("loss", 'kind = "ot"\nmass_weights = [1.0, 1.0]', r"loss\.mass_weights = \[1\.0, 1\.0\]: expected one weight per "
+                                                     r"loss grid \(1: loss\.grids = \[32\]\)$"),
+    ("loss", 'kind = "ot"\ngrids = [16, 32]\nmass_weights = [1.0]',
+     r"loss\.mass_weights = \[1\.0\]: expected one weight per loss grid \(2: loss\.grids = \[16, 32\]\)$"),
     ("loss", "target_scale = [1.0, -1.0]", r"loss\.target_scale = \[1\.0, -1\.0\]: expected a number > 0 or a list"),
     ("optimize", "iterations = -1", r"optimize\.iterations = -1: expected an integer >= 0"),
     ("optimize", "lr = 0", r"optimize\.lr = 0: expected a number > 0"),
@@ -287,6 +325,16 @@ REFUSALS = [
                                            r'loss\.kind = "mass"'),
     ("loss", 'kind = "position"', r'scene\.target = "img/square\.png": expected no target image with '
                                   r'loss\.kind = "position"'),
+    ("loss", "ot_blur = 2.0", r'loss\.ot_blur = 2\.0: expected no ot_blur with loss\.kind = "mass" \(it sets the '
+                              r'optimal-transport loss, loss\.kind = "ot"\)$'),
+    ("loss", "ot_reach = 0.3", r'loss\.ot_reach = 0\.3: expected no ot_reach with loss\.kind = "mass"'),
+    ("loss", 'kind = "color"\nmass_weights = [1.0]', r'loss\.mass_weights = \[1\.0\]: expected no mass_weights with '
+                                                    r'loss\.kind = "color"'),
+    ("loss", 'kind = "ot"\nweights = [0.0]', r"loss\.weights = \[0\.0\]: expected on every loss grid a transport weight "
+                                          r"\(loss\.weights\) or a mass weight \(loss\.mass_weights\) > 0$"),
+    ("loss", 'kind = "ot"\ngrids = [16, 32]\nweights = [1.0, 0.0]\nmass_weights = [0.0, 0.0]',
+     r"loss\.weights = \[1\.0, 0\.0\]: expected on every loss grid a transport weight"),
+    ("loss", 'kind = "ot"\npenalty = 10', r'loss\.penalty = 10: expected 0 with loss\.kind = "ot"'),
 ]
 
 
@@ -497,6 +545,27 @@ def test_metrics_on_small_grids():
     target = np.array([[2.0, 0.0], [1.0, 0.0]])
     assert mass_outside(mass, target) == pytest.approx(0.75)
     assert occupied(mass, 10.0, frac=0.2).tolist() == [[False, True], [False, False]]
+
+
+def test_mass_error_and_color_error_on_small_grids():
+    """mass_error = 1/2 sum |m - m_u| / sum m_u: 0 for the same grid, 1 for disjoint grids of equal mass, the
+    moved fraction for a half overlap; color_error is the largest channel's."""
+    a = np.zeros((4, 4))
+    b = np.zeros((4, 4))
+    a[:2] = 1.0
+    b[2:] = 1.0
+    half = np.zeros((4, 4))
+    half[1:3] = 1.0  # shares row 1 with a: half of a's mass is in place
+    assert mass_error(a, a) == 0.0
+    assert mass_error(a, b) == pytest.approx(1.0, rel=1e-15) and mass_error(b, a) == pytest.approx(1.0, rel=1e-15)
+    assert mass_error(half, a) == pytest.approx(0.5, rel=1e-15)
+    assert mass_error(2 * a, a) == pytest.approx(0.5, rel=1e-15)  # not normalised: extra mass counts
+    assert mass_error(a, np.zeros((4, 4))) == 0.0  # an empty target: no error defined, reported as 0
+    ca = np.stack([a, a, a], axis=-1)
+    cb = np.stack([a, half, b], axis=-1)  # channel errors 0, 0.5, 1
+    assert color_error(ca, ca) == 0.0
+    assert color_error(cb, ca) == pytest.approx(1.0, rel=1e-15)
+    assert color_error(cb[..., [0, 1, 0]], ca) == pytest.approx(0.5, rel=1e-15)
 
 
 def test_penalty_number_sets_alpha_on_empty_target_nodes(scene_dir):
