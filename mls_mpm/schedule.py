@@ -7,9 +7,9 @@ L-BFGS's curvature pairs and Adam's moments no longer describe it). Coarse grids
 (and the optimal-transport cost) pull material that is far from the target; the finer grids added later shape
 the detail. Without a schedule there is one stage holding every loss grid.
 
-The budget (`optimize.max_seconds`, 0: none) is a deadline for the whole run, compile time included. A stage
-that starts with R seconds left gets R * its share / the shares left; one that finishes early leaves its time
-to the next. An optimizer past its deadline stops after its current unit of work, like an interrupt, and its
+The budget (`optimize.max_seconds`, 0: none) is a deadline for the whole run, compile time included. The
+kernels are compiled first (one forward and backward pass), then a stage that starts with R seconds left gets
+R * its share / the shares left; one that finishes early leaves its time to the next. An optimizer past its deadline stops after its current unit of work, like an interrupt, and its
 controls (the best so far: every optimizer here only accepts decreases, except adam) are the result, with the
 stop reason "time budget".
 
@@ -64,6 +64,10 @@ def staged(method, stages, max_seconds=0.0, started=None, clock=time.perf_counte
         if multi and loss_start is None:
             sim.set_active_grids(stages[-1].grids)
             loss_start = sim.forward(controls)
+        if math.isfinite(deadline):  # compile the forward and reverse kernels before the stages' clocks start
+            sim.set_active_grids(stages[-1].grids)
+            sim.forward(controls if inner is None else inner["controls"])
+            sim.backward()
         c = controls if inner is None else inner["controls"]
         for k in range(first, len(stages)):
             stage = stages[k]
