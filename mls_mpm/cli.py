@@ -109,6 +109,9 @@ def build_parser():
     morph.add_argument("--loss", choices=["auto", "mass", "color"], default="auto",
                        help="auto: the colour loss when both images have more than one colour region, else "
                             "optimal transport + mass")
+    morph.add_argument("--keep-position", action="store_true",
+                       help="keep the target where its image puts it (default: moved onto the body's centre of "
+                            "mass, which internal controls cannot move)")
     morph.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                        help="override any chosen scene key, e.g. --set sim.steps=300 (repeatable)")
     morph.add_argument("--arch", choices=["cpu", "gpu"], help="override sim.arch")
@@ -244,7 +247,8 @@ def cmd_morph(args):
     from .scene import load_scene
 
     arch = [f"sim.arch={args.arch}"] if args.arch else []
-    choice = choose(args.initial, args.target, args.quality, args.loss, args.seconds, list(args.set) + arch)
+    choice = choose(args.initial, args.target, args.quality, args.loss, args.seconds, list(args.set) + arch,
+                    args.keep_position)
     out = Path(args.out) if args.out else Path("renders") / choice.name
     with tempfile.TemporaryDirectory() as tmp:  # validated before anything is written
         path = Path(tmp) / "scene.toml"

@@ -2,6 +2,8 @@
 
 The choices, each written into the scene file the run saves (DIR/scene.toml), so `mls-mpm run DIR/scene.toml`
 reproduces the run and a user can edit it:
+- the target is moved so that its centre of mass is the body's (scene.target_shift; `--keep-position` keeps
+  it where the image puts it): the controls are internal forces and cannot move the body's centre of mass;
 - the thesis program's material on the grid of the quality preset (E = 90000 dx^2, nu 0.3, density 40, drag
   0.5, dt = 1/120, no gravity: the shipped thesis scenes' settings at any n_grid);
 - steps long enough for the distance the mass has to travel: the optimal assignment of a subsample of the
@@ -72,10 +74,13 @@ class Choice:
     speed: float  # peak speed, domain units per second
     steps: int
     loss: str
+    shift: tuple = (0.0, 0.0)  # the target's move onto the body's centre of mass
 
     def line(self, q: str) -> str:
-        return (f"morph ({q}): {self.loss} loss; travel {self.distance:.3f} (90% of the transport plan) at up to "
-                f"{self.speed:.3g}/s (CFL-safe {SPEED} cell/step) -> {self.steps} steps")
+        moved = (f"target moved by ({self.shift[0]:+.3f}, {self.shift[1]:+.3f}) onto the body's centre of mass "
+                 "(--keep-position: not); " if any(self.shift) else "")
+        return (f"morph ({q}): {moved}{self.loss} loss; travel {self.distance:.3f} (90% of the transport plan) at "
+                f"up to {self.speed:.3g}/s (CFL-safe {SPEED} cell/step) -> {self.steps} steps")
 
 
 def _image(path, what):
@@ -116,7 +121,17 @@ def travel_distance(x0, xt, seed=0) -> float:
     return float(np.quantile(np.sqrt(cost[rows, cols]), PLAN_QUANTILE))
 
 
-def choose(initial, target, quality="default", loss="auto", seconds=None, sets=()) -> Choice:
+def centring_shift(x0, xt, n_grid, bound=3) -> np.ndarray:
+    """The shift of the target particles xt that puts their centroid on the body's, limited so that they stay
+    at least bound + 1 cells from every edge: the controls are internal forces, which cannot move the body's
+    centre of mass (momentum is conserved; drag only slows it), so a target elsewhere cannot be reached."""
+    shift = x0.mean(axis=0) - xt.mean(axis=0)
+    dx = 1.0 / n_grid
+    lo, hi = (bound + 1) * dx - xt.min(axis=0), 1.0 - (bound + 2) * dx - xt.max(axis=0)
+    return np.clip(shift, np.minimum(lo, 0.0), np.maximum(hi, 0.0))
+
+
+def choose(initial, target, quality="default", loss="auto", seconds=None, sets=(), keep_position=False) -> Choice:
     """The scene for morphing image `initial` into image `target` (MorphError on bad input)."""
     if quality not in QUALITIES:
         raise MorphError(f"--quality {quality}: expected one of {', '.join(QUALITIES)}")
@@ -134,6 +149,8 @@ def choose(initial, target, quality="default", loss="auto", seconds=None, sets=(
     except ImageError as e:
         raise MorphError(f"INITIAL {initial} or TARGET {target}: {e}; use larger shapes or a finer --set "
                          "sim.n_grid") from None
+    shift = np.zeros(2) if keep_position else centring_shift(x0, xt, n)
+    xt = xt + shift
     use_color = loss == "color" or (loss == "auto" and color_regions(rgba0) > 1 and color_regions(rgbat) > 1)
     dx = 1.0 / n
     distance = travel_distance(x0, xt)
@@ -145,7 +162,8 @@ def choose(initial, target, quality="default", loss="auto", seconds=None, sets=(
     m_t = m_p * len(x0) / len(xt)
     coarse, fine = max(8, n // 2), n
     sections = {
-        "scene": {"name": _name(p0, pt), "initial": str(p0), "target": str(pt)},
+        "scene": {"name": _name(p0, pt), "initial": str(p0), "target": str(pt),
+                  "target_shift": [float(f"{v:.6g}") for v in shift]},
         "sim": {"n_grid": n, "steps": steps, "dt": DT, "E": E_CELLS * dx * dx, "nu": 0.3, "density": density,
                 "gamma": 0.5, "gravity": [0.0, 0.0], "particles_per_cell": ppc},
         "control": {"stride": STRIDE},
@@ -168,7 +186,7 @@ def choose(initial, target, quality="default", loss="auto", seconds=None, sets=(
     for (section, key), value in given.items():
         sections.setdefault(section, {})[key] = value
     text = _toml(sections, quality, kind)
-    return Choice(text, sections["scene"]["name"], distance, speed, steps, kind)
+    return Choice(text, sections["scene"]["name"], distance, speed, steps, kind, tuple(shift))
 
 
 def _weight(value) -> float:

@@ -103,6 +103,13 @@ def build(scene) -> Problem:
         return Problem(x0, colors, PositionLoss(target_x), target_x, grids, max(ls.grids))
 
     tx, tcolors = _sample(scene, "scene.target", target)
+    if any(scene.target_shift):
+        tx = tx + np.asarray(scene.target_shift)
+        lo, hi = cfg.dx, 1.0 - 2.0 * cfg.dx
+        if np.any((tx < lo) | (tx >= hi)):
+            raise SceneError(f"{scene.path}: scene.target_shift = {list(scene.target_shift)}: expected a shift that "
+                             f"keeps the target inside [{lo:.4g}, {hi:.4g}) (it spans "
+                             f"{tx.min(axis=0).round(4).tolist()} to {tx.max(axis=0).round(4).tolist()})")
     m_t = target_particle_mass(scene, len(x0), len(tx))
     grids = [splat_grid(tx, m_t, res) for res in ls.grids]
     alpha = None

@@ -84,6 +84,7 @@ class Scene:
     loss: LossSettings
     optimize: OptimizeSettings
     render: RenderSettings
+    target_shift: tuple = (0.0, 0.0)  # moves the target particles (domain units), e.g. onto the body's centroid
 
     def to_dict(self) -> dict:
         """Every setting as plain JSON-able data, laid out like the scene file (for summary.json)."""
@@ -92,7 +93,8 @@ class Scene:
         loss = asdict(self.loss)
         return _plain({
             "scene": {"name": self.name, "path": self.path, "initial": self.initial, "target": self.target,
-                      "region": self.region, "seed": self.seed, "target_density": self.target_density},
+                      "region": self.region, "seed": self.seed, "target_density": self.target_density,
+                      "target_shift": self.target_shift},
             "sim": sim,
             "control": {"stride": stride},
             "loss": loss,
@@ -180,6 +182,10 @@ def load_scene(path, overrides=()) -> Scene:
             r.fail("scene", "region", f"[x0, y0, x1, y1] with {lo:.4g} <= x0 < x1 <= {hi:.4g} and the same for y "
                                       f"(dx to 1 - 2 dx at n_grid {sim.n_grid})")
 
+    target_shift = r.get("scene", "target_shift")
+    if kind == "position" and r.has("scene", "target_shift"):
+        r.fail("scene", "target_shift", "no target_shift with loss.kind = \"position\" (use loss.target_offset)")
+
     # [loss]
     grids = r.get("loss", "grids") or (sim.n_grid,)
     weights = r.get("loss", "weights") or (1.0,) * len(grids)
@@ -227,5 +233,6 @@ def load_scene(path, overrides=()) -> Scene:
         raise SceneError(f"{path}: scene.name: missing, and the file name {toml_text(path.stem)} is not a valid name; "
                          f"expected {NAME_RULE}: set scene.name or rename the file")
     return Scene(name=name or path.stem, path=path, initial=initial, target=target, region=region,
-                 seed=r.get("scene", "seed"), target_density=r.get("scene", "target_density"), sim=sim, loss=loss,
+                 seed=r.get("scene", "seed"), target_density=r.get("scene", "target_density"),
+                 target_shift=target_shift, sim=sim, loss=loss,
                  optimize=optimize, render=RenderSettings(**render))

@@ -168,6 +168,7 @@ SPEC = {
         "region": (None, _vec(4, "[x0, y0, x1, y1], the box the images are fitted into")),
         "seed": (0, _int(0)),
         "target_density": ("match", _choice(TARGET_DENSITY)),
+        "target_shift": ([0.0, 0.0], _vec(2, "a list [dx, dy] of two numbers (domain units)")),
     },
     "sim": {
         "n_grid": (_SIM["n_grid"], _int(1)),
