@@ -237,6 +237,9 @@ def test_a_budget_spent_in_stage_one_ends_the_run():
     sim = FakeSim()
     res = run(sim, 0.0, settings(10), emit=lines.append)
     assert len(starts) == 1 and res.iterations == 1 and res.controls == -1.0
+    # stage 1's losses, then the last stage's loss of the controls the run ends with: loss_final is measured
+    # like loss_start (20), on every grid
+    assert res.losses == [10.0, 9.0, 19.0] and res.loss_start == 20.0
     assert res.reason == BUDGET_REASON and res.converged is False
     assert sim.active == (16, 32)
 
