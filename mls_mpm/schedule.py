@@ -97,7 +97,15 @@ def staged(method, stages, max_seconds=0.0, started=None, clock=time.perf_counte
                 return _result(res, losses, grad_norms, iterations, loss_start)
             if res.reason == "interrupted":  # past the stage's deadline; the next stage gets what is left
                 res.reason, res.converged = BUDGET_REASON, False
-                if k == len(stages) - 1 or clock() >= deadline:
+                out_of_time = clock() >= deadline
+                if out_of_time and k < len(stages) - 1 and res.positions is None:
+                    # no time for the later stages: the run still ends with the last stage's loss of its controls
+                    # (a list of one, as a stage of no iterations), measured like loss_start, not stage k's
+                    losses, grad_norms = losses + list(res.losses), grad_norms + list(res.grad_norms)
+                    iterations += res.iterations
+                    sim.set_active_grids(stages[-1].grids)
+                    res = OptimizeResult(res.controls, [sim.forward(res.controls)], 0, False, BUDGET_REASON)
+                if k == len(stages) - 1 or out_of_time:
                     sim.set_active_grids(None)
                     return _result(res, losses, grad_norms, iterations, loss_start)
             c = res.controls
