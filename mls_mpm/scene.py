@@ -223,6 +223,9 @@ def load_scene(path, overrides=()) -> Scene:
         if not set(stage["grids"]) <= set(grids):
             r.fail("optimize", "schedule", f"stages whose grids are among loss.grids = {toml_text(list(grids))} "
                                            f"(stage {k + 1} has {toml_text(list(stage['grids']))})")
+    if opt["schedule"] and opt["method"] == "positions":
+        r.fail("optimize", "schedule", "no schedule with optimize.method = \"positions\" (each stage would restart "
+                                       "the positions from the initial state)")
     optimize = OptimizeSettings(**opt)
     render = {key: r.get("render", key) for key in SPEC["render"]}
     if render["mode"] is None:
