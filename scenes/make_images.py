@@ -236,7 +236,10 @@ def pairs():
         "split_two": (disk20, shape(("disk", (17, C, 14), BLACK), ("disk", (47, C, 14), BLACK))),
         "split_three": (disk22, shape(("disk", (C, 15, 12), BLACK), ("disk", (15, 46, 12), BLACK),
                                       ("disk", (49, 46, 12), BLACK))),
-        "merge_four": (shape(*(square(x, y, 14) for x in (11, 53) for y in (11, 53))), disk16),
+        # separate bodies each keep their own centre of mass (the controls are internal forces), so they can only
+        # merge by growing towards each other: the ellipse's halves have the disks' centroids (4 a / 3 pi = 11.25)
+        "merge_two": (shape(("disk", (C - 11.25, C, 9), BLACK), ("disk", (C + 11.25, C, 9), BLACK)),
+                      shape(("mask", lambda x, y: ((x - C) / 26.5) ** 2 + ((y - C) / 6.1) ** 2 <= 1.0, BLACK))),
         # glyphs drawn as polygons and strokes
         "letter_T": (shape(square(C, C, 34)), shape(("rect", (6, 6, 57, 17), BLACK),
                                                     ("rect", (26, 6, 37, 57), BLACK))),

@@ -94,7 +94,7 @@ def test_area_ratio_pairs_shrink_to_a_third_and_grow_three_times():
     ("thin_ring", (1, 0), (1, 1)),
     ("split_two", (1, 0), (2, 0)),
     ("split_three", (1, 0), (3, 0)),
-    ("merge_four", (4, 0), (1, 0)),
+    ("merge_two", (2, 0), (1, 0)),
     ("letter_A", (1, 0), (1, 1)),
     ("letter_C", (1, 0), (1, 0)),
     ("letter_S", (1, 0), (1, 0)),

@@ -60,7 +60,7 @@ PAIRS = (
     Pair("hole_closes", "hole closes", "annulus to a disk"),
     Pair("split_two", "split", "disk to two disks"),
     Pair("split_three", "split", "disk to three disks"),
-    Pair("merge_four", "merge", "four corner squares to one disk"),
+    Pair("merge_two", "merge", "two disks grow into one ellipse"),
     Pair("letter_T", "letter", "square to a T"),
     Pair("letter_C", "letter", "disk to a C (round strokes)"),
     Pair("letter_S", "letter", "square to an S (round strokes)"),
