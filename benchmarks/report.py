@@ -25,6 +25,7 @@ ROOT = Path(__file__).resolve().parent.parent
 MLS_MPM = [sys.executable, "-m", "mls_mpm.cli"]
 ROW_BUDGET = 400  # seconds: a tradeoff row still running then is stopped and reported as slower than this
 GPU_TABLE = ROOT / "benchmarks" / "gpu_gradient.md"  # `mls-mpm bench gradient --arch gpu --out` on a GPU machine
+QUALITY_TABLES = {q: ROOT / "benchmarks" / f"quality_{q}.md" for q in ("default", "fast")}  # bench quality's tables
 
 
 def run(cmd, env=None):
@@ -76,6 +77,19 @@ def gpu_section():
         return GPU_TABLE.read_text().strip()
     return ("No GPU figures: no session so far has had a GPU machine. The GPU code path itself is tested on every "
             "CI run on Mesa's lavapipe (a Vulkan driver on the CPU, tests/test_gpu.py), where timings mean nothing.")
+
+
+def quality_section():
+    """The morph quality tables (`mls-mpm bench quality`, about 30 minutes at --quality default, run apart from this
+    report and copied from DIR/quality.md into benchmarks/quality_<quality>.md), or where they would come from."""
+    parts = []
+    for q, path in QUALITY_TABLES.items():
+        if path.is_file():
+            parts.append(f"### `--quality {q}`\n\n" + path.read_text().strip())
+        else:
+            parts.append(f"### `--quality {q}`\n\nNot measured yet: run `mls-mpm bench quality --quality {q} --out "
+                         f"renders/bench_quality_{q}` on a quiet machine and copy its quality.md to {path.name}.")
+    return "\n\n".join(parts)
 
 
 def machine():
@@ -148,6 +162,15 @@ comparable to the others; compare their iou. ![tradeoff](benchmarks/figures/trad
 To go faster, change X; it costs Y (computed from the sweep above):
 
 {guide(sweep / "tradeoff.csv")}
+
+## Morph quality (`mls-mpm bench quality`)
+
+Targets (issue 11): at `--quality default` every pair iou >= 0.90 and mass_error <= 0.15 in <= 120 s wall (compile
+included), median iou >= 0.95; at `--quality fast` iou >= 0.8 in <= 30 s. iou compares the nodes of the finest loss
+grid holding more than 10% of the rest node mass (problem.occupied); mass_error is 1/2 sum |m_i - m_iu| / sum m_iu
+there.
+
+{quality_section()}
 
 ## Rendering (`python benchmarks/render_speed.py`)
 
