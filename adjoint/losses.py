@@ -2,7 +2,7 @@
 import taichi as ti
 
 from mls_mpm.kernels import node_weight, stencil, weights
-from mls_mpm.losses import node_penalty, node_residual, splat_value
+from mls_mpm.losses import OT_KINDS, node_penalty, node_residual, splat_value
 
 from .state import zero_step
 
@@ -52,7 +52,7 @@ def evaluate_reverse(s, a, f):
     (v, C, F get zero: eq 44-46)."""
     zero_step(s, a, f)
     for g in s.active_grids:
-        if g.kind == "ot":
+        if g.kind in OT_KINDS:
             ot_loss_reverse(s, g)
         else:
             grid_loss_reverse(s, g)

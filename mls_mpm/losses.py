@@ -16,7 +16,9 @@ from . import ot
 from .kernels import splat_particle
 from .errors import UserError
 
+OT_KINDS = ("ot", "color_ot")  # loss grids whose term ot_loss computes in numpy
 OT_BLUR = 2.0  # default entropic blur sigma of the OT loss, in cells of each loss grid (see OTLoss)
+COLOR_EMPTY = 1e-9  # a colour channel holding less than this fraction of a grid's colour-mass is left out of OT
 OT_TOL = 1e-5  # Sinkhorn stops when no potential changes by more than this times eps in an iteration
 
 
@@ -67,13 +69,29 @@ class MassLoss:
 
 
 class ColorLoss:
-    """Eq 13 on loss grids: sum_g w_g sum_i 1/2 |c_i - c_iu|^2 with c_i = sum_p N m_p c_p (eq 12).
+    """Eq 13 on loss grids: sum_g w_g sum_i 1/2 |c_i - c_iu|^2 with c_i = sum_p N m_p c_p (eq 12), plus, with
+    ot_weights, optimal transport of each colour channel: sum_g ow_g sum_c S(c_g,c, c_gu,c), the debiased
+    Sinkhorn divergence (balanced) of the channel's colour-mass, which pulls red material towards where the
+    target is red however far it is (eq 13, like eq 11, reaches two cells). A channel empty in the body or the
+    target of a grid is left out of its transport term.
 
-    targets: list of (res, res, 3) target color-mass grids; colors: (N, 3) particle RGB.
+    targets: list of (res, res, 3) target color-mass grids; colors: (N, 3) particle RGB; weights: eq 13's, one
+    per grid (0: none); ot_weights: the transport term's, one per grid (default none); blur, tol: as OTLoss.
     """
 
-    def __init__(self, targets, colors, weights=None):
-        self.grids = _grid_specs("color", targets, weights, None, channels=3)
+    def __init__(self, targets, colors, weights=None, ot_weights=None, blur=OT_BLUR, tol=OT_TOL):
+        weights = [1.0] * len(_list(targets)) if weights is None else list(weights)
+        ot_weights = [0.0] * len(weights) if ot_weights is None else list(ot_weights)
+        if len(ot_weights) != len(weights) or any(not (np.isfinite(w) and w >= 0) for w in weights + ot_weights):
+            raise LossError(f"weights, ot_weights: expected one number >= 0 each per target grid ({len(weights)})")
+        if any(w + ow <= 0 for w, ow in zip(weights, ot_weights)):
+            raise LossError("weights, ot_weights: expected a colour or a transport weight > 0 on every grid")
+        if not (np.isfinite(blur) and blur > 0):
+            raise LossError(f"blur: expected a number > 0 (cells), got {blur!r}")
+        specs = _grid_specs("color", targets, [w or 1.0 for w in weights], None, channels=3)  # 0: checked above
+        self.grids = tuple(GridSpec("color", g.res, w, g.target, None) for g, w in zip(specs, weights) if w > 0) + \
+            tuple(GridSpec("color_ot", g.res, w, g.target, None, float(blur), None, float(tol))
+                  for g, w in zip(specs, ot_weights) if w > 0)
         self.colors = _array(colors, "colors")
         if self.colors.ndim != 2 or self.colors.shape[1] != 3:
             raise LossError(f"colors: expected shape (N, 3), got {self.colors.shape}")
@@ -219,13 +237,21 @@ def position_loss(s: ti.template(), f: ti.i32):
 
 
 def ot_loss(s, g):
-    """L += w_g S(m, m_u) on an OT grid (OTLoss); writes w_g dS/dm_i into g.seed, which the reverse pass reads
-    as dL/dm_i (adjoint.losses.ot_loss_reverse) and the Tape as the weights of its linear stand-in (seed_loss)."""
-    m = g.m.to_numpy()[..., 0].astype(np.float64)
-    r = ot.sinkhorn_divergence(m, g.target_np, g.blur / g.res, g.reach, tol=g.tol)
-    g.seed.from_numpy((g.weight * r.grad)[..., None].astype(g.np_dtype))
-    s.loss[None] += g.weight * r.value
-    return g.weight * r.value
+    """L += w_g S(m, m_u) on an OT grid (OTLoss), or w_g sum_c S(c_c, c_u,c) over the colour channels of a
+    colour OT grid (ColorLoss ot_weights); writes w_g dS/dm_i into g.seed, which the reverse pass reads as
+    dL/dm_i (adjoint.losses.ot_loss_reverse) and the Tape as the weights of its linear stand-in (seed_loss)."""
+    m = g.m.to_numpy().astype(np.float64)  # (res, res, channels)
+    target = g.target_np.reshape(m.shape)
+    seed, value = np.zeros_like(m), 0.0
+    for c in range(m.shape[-1]):
+        body, aim = m[..., c], target[..., c]
+        if g.channels > 1 and not (body.sum() > COLOR_EMPTY * m.sum() and aim.sum() > COLOR_EMPTY * target.sum()):
+            continue  # a colour channel that the body or the target lacks: nothing to transport
+        r = ot.sinkhorn_divergence(body, aim, g.blur / g.res, g.reach, tol=g.tol)
+        seed[..., c], value = g.weight * r.grad, value + g.weight * r.value
+    g.seed.from_numpy(seed.astype(g.np_dtype))
+    s.loss[None] += value
+    return value
 
 
 @ti.kernel
@@ -242,7 +268,7 @@ def evaluate(s, f):
     for g in s.active_grids:
         g.m.fill(0.0)
         splat(s, g, f)
-        if g.kind == "ot":
+        if g.kind in OT_KINDS:
             ot_loss(s, g)
         else:
             grid_loss(s, g)

@@ -115,7 +115,7 @@ def build(scene) -> Problem:
     alpha = None
     if ls.kind == "color":
         targets = [splat_grid(tx, m_t, res, tcolors) for res in ls.grids]
-        loss = ColorLoss(targets, colors, list(ls.weights))
+        loss = ColorLoss(targets, colors, list(ls.weights), list(ls.ot_weights) or None, ls.ot_blur)
     elif ls.kind == "ot":
         loss = OTLoss(grids, list(ls.weights), ls.ot_blur, ls.ot_reach, list(ls.mass_weights) or None)
     else:
@@ -130,6 +130,10 @@ def loss_grids(ls) -> list:
     if ls.kind == "position":
         return []
     channels = 3 if ls.kind == "color" else 1
+    if ls.kind == "color":  # eq 13 where the weight is > 0, colour transport where the ot weight is
+        ot_weights = ls.ot_weights or (0.0,) * len(ls.grids)
+        return [(res, 3, False) for res, w in zip(ls.grids, ls.weights) if w > 0] + \
+            [(res, 3, False) for res, w in zip(ls.grids, ot_weights) if w > 0]
     if ls.kind == "ot":  # a transport term where the weight is > 0, eq 11 where the mass weight is
         mass_weights = ls.mass_weights or (0.0,) * len(ls.grids)
         return [(res, 1, False) for res, w in zip(ls.grids, ls.weights) if w > 0] + \

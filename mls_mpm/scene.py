@@ -37,6 +37,7 @@ class LossSettings:
     ot_blur: float = 2.0  # ot: entropic blur sigma in cells of each loss grid
     ot_reach: float | None = None  # ot: None (balanced) or the unbalanced reach in domain units
     mass_weights: tuple = ()  # ot: weight of eq 11 on each loss grid beside the transport cost (0: none)
+    ot_weights: tuple = ()  # color: weight of the per-channel transport cost on each loss grid (0: none)
 
 
 @dataclass(frozen=True)
@@ -191,9 +192,9 @@ def load_scene(path, overrides=()) -> Scene:
     weights = r.get("loss", "weights") or (1.0,) * len(grids)
     if len(weights) != len(grids):
         r.fail("loss", "weights", f"one weight per loss grid ({len(grids)}: loss.grids = {toml_text(list(grids))})")
-    if kind != "ot" and any(w <= 0 for w in weights):
-        r.fail("loss", "weights", "a non-empty list of numbers > 0 (0 is allowed only with loss.kind = \"ot\", "
-                                  "where a grid may carry only its loss.mass_weights term)")
+    if kind not in ("ot", "color") and any(w <= 0 for w in weights):
+        r.fail("loss", "weights", "a non-empty list of numbers > 0 (0 is allowed only with loss.kind = \"ot\" or "
+                                  "\"color\", where a grid may carry only its loss.mass_weights or loss.ot_weights term)")
     penalty = r.get("loss", "penalty")
     if kind not in ("mass", "log_mass") and penalty != 0.0:
         r.fail("loss", "penalty", f"0 with loss.kind = \"{kind}\" (penalty grids weigh the mass losses)")
@@ -203,19 +204,25 @@ def load_scene(path, overrides=()) -> Scene:
     for key in moves:
         if kind != "position" and r.has("loss", key):
             r.fail("loss", key, f"no {key} with loss.kind = \"{kind}\" (it moves the position loss's targets)")
-    for key in ("ot_blur", "ot_reach", "mass_weights"):
-        if kind != "ot" and r.has("loss", key):
+    for key, kinds in (("ot_blur", ("ot", "color")), ("ot_reach", ("ot",)), ("mass_weights", ("ot",)),
+                       ("ot_weights", ("color",))):
+        if kind not in kinds and r.has("loss", key):
             r.fail("loss", key, f"no {key} with loss.kind = \"{kind}\" (it sets the optimal-transport loss, "
-                                "loss.kind = \"ot\")")
-    mass_weights = r.get("loss", "mass_weights") or ()
-    if mass_weights and len(mass_weights) != len(grids):
-        r.fail("loss", "mass_weights", f"one weight per loss grid ({len(grids)}: loss.grids = {toml_text(list(grids))})")
-    if kind == "ot" and any(w + mw <= 0 for w, mw in zip(weights, mass_weights or (0.0,) * len(grids))):
-        r.fail("loss", "weights", "on every loss grid a transport weight (loss.weights) or a mass weight "
-                                  "(loss.mass_weights) > 0")
+                                f"loss.kind = {' or '.join(f'{chr(34)}{k}{chr(34)}' for k in kinds)})")
+    second = {"ot": "mass_weights", "color": "ot_weights"}.get(kind)  # the other term's weights, one per grid
+    extra = (r.get("loss", second) or ()) if second else ()
+    if extra and len(extra) != len(grids):
+        r.fail("loss", second, f"one weight per loss grid ({len(grids)}: loss.grids = {toml_text(list(grids))})")
+    if second and any(w + e <= 0 for w, e in zip(weights, extra or (0.0,) * len(grids))):
+        first = "a transport" if kind == "ot" else "a colour"
+        other = "a mass" if kind == "ot" else "a transport"
+        r.fail("loss", "weights", f"on every loss grid {first} weight (loss.weights) or {other} weight "
+                                  f"(loss.{second}) > 0")
+    mass_weights = extra if kind == "ot" else ()
+    ot_weights = extra if kind == "color" else ()
     loss = LossSettings(kind=kind, grids=grids, weights=weights, penalty=penalty,
                         penalty_max=r.get("loss", "penalty_max"), **moves, ot_blur=r.get("loss", "ot_blur"),
-                        ot_reach=r.get("loss", "ot_reach"), mass_weights=mass_weights)
+                        ot_reach=r.get("loss", "ot_reach"), mass_weights=mass_weights, ot_weights=ot_weights)
 
     opt = {key: r.get("optimize", key) for key in SPEC["optimize"]}
     opt["schedule"] = opt["schedule"] or ()

@@ -200,6 +200,7 @@ SPEC = {
         "ot_blur": (2.0, _num(lambda x: 0.25 <= x <= 64, "a number in [0.25, 64] (cells of each loss grid)")),
         "ot_reach": (None, _num(lambda x: x > 0, "a number > 0 (domain units; leave it out for balanced transport)")),
         "mass_weights": (None, _floats_nonnegative()),
+        "ot_weights": (None, _floats_nonnegative()),
         "target_scale": ([1.0, 1.0], _scale()),
         "target_offset": ([0.0, 0.0], _vec(2, "a list [dx, dy] of two numbers")),
     },

@@ -3,6 +3,7 @@
 import numpy as np
 import taichi as ti
 
+from .losses import OT_KINDS
 from .runtime import real
 
 FAULT_NONE = 2 ** 62  # fault[k] holds min(f * N + p) over faulty (step f, particle p), or this
@@ -14,9 +15,10 @@ FAULT_NON_FINITE = 1  # a particle's new state holds NaN or Inf
 class LossGrid:
     """One loss grid of its own resolution (thesis 8.1): its mass (and color-mass) and target.
 
-    kind: "mass" (eq 11 / 72), "log_mass" (1/2 (ln(m+1) - ln(m_u+1))^2), "color" (eq 13) or "ot" (the
+    kind: "mass" (eq 11 / 72), "log_mass" (1/2 (ln(m+1) - ln(m_u+1))^2), "color" (eq 13), "ot" (the
     Sinkhorn divergence of losses.OTLoss, computed in numpy from m; its target stays in numpy, and the field
-    `seed` holds its gradient dL/dm_i in place of the target field). Entry [i, j] is the node at (i dx, j dx)
+    `seed` holds its gradient dL/dm_i in place of the target field) or "color_ot" (the same per colour
+    channel, ColorLoss's ot_weights). Entry [i, j] is the node at (i dx, j dx)
     with dx = 1 / res.
     """
 
@@ -31,12 +33,12 @@ class LossGrid:
         self.inv_dx = float(res)
         self.weight = float(weight)
         self.has_alpha = has_alpha
-        self.is_color = kind == "color"
+        self.is_color = kind in ("color", "color_ot")
         channels = 3 if self.is_color else 1
         self.channels = channels
         # m: node mass (color-mass c_i for color grids, eq 12); target: m_iu or c_iu
         self.m = ti.Vector.field(channels, dtype, shape=(res, res), needs_grad=needs_grad)
-        if kind == "ot":
+        if kind in OT_KINDS:
             self.seed = ti.Vector.field(channels, dtype, shape=(res, res))  # dL/dm_i of the last ot_loss
         else:
             self.target = ti.Vector.field(channels, dtype, shape=(res, res))
@@ -121,8 +123,8 @@ def upload_loss(s, loss):
         return
     np_dtype = np.float64 if s.x.dtype == ti.f64 else np.float32
     for g, spec in zip(s.loss_grids, loss.grids):
-        if g.kind == "ot":
-            g.target_np = spec.target[..., 0]
+        if g.kind in OT_KINDS:
+            g.target_np = spec.target[..., 0] if g.kind == "ot" else spec.target
             continue
         g.target.from_numpy(spec.target.astype(np_dtype))
         if spec.alpha is not None:

@@ -4,7 +4,7 @@ import taichi as ti
 
 from . import losses, runtime
 from .grid import grid_op
-from .losses import ColorLoss, PositionLoss
+from .losses import OT_KINDS, ColorLoss, PositionLoss
 from .state import State, upload_loss, write_step
 from .transfer import g2p, p2g
 
@@ -27,7 +27,7 @@ def tape_gradient(cfg, init, loss, controls, validation=False, state=None):
     for field in (t.grid_m, t.grid_p, t.grid_v, t.loss, *(g.m for g in t.loss_grids)):
         field.fill(0.0)
     T = cfg.steps
-    ot_grids = [g for g in t.loss_grids if g.kind == "ot"]
+    ot_grids = [g for g in t.loss_grids if g.kind in OT_KINDS]
     ot_value = 0.0
     if ot_grids:
         # the OT divergence is computed in numpy, outside the Tape: a first pass finds the final node masses and
@@ -50,7 +50,7 @@ def tape_gradient(cfg, init, loss, controls, validation=False, state=None):
             g2p(t, f)
         for g in t.loss_grids:
             losses.splat(t, g, T)
-            if g.kind == "ot":
+            if g.kind in OT_KINDS:
                 losses.seed_loss(t, g)
             else:
                 losses.grid_loss(t, g)

@@ -69,6 +69,13 @@ def make_problem(kind, schedule="auto"):
         far = (0.70, 0.62)
         loss = mls_mpm.OTLoss([disk_mass(16, far, radius), disk_mass(32, far, radius)], weights=[1.0, 0.5],
                               blur=1.5, mass_weights=[0.0, 2.0], tol=1e-12)
+    elif kind == "color_ot":
+        # colour transport per channel on a 16 grid (the ramp turned by 90 degrees, as "color"), eq 13 on a 32 grid
+        colors = np.stack([x0[:, 0], x0[:, 1], 1.0 - x0[:, 0]], axis=1)
+        i16, i32 = np.arange(16) / 16.0, np.arange(32) / 32.0
+        targets = [disk_mass(r, center, radius)[..., None] * np.stack(
+            np.broadcast_arrays(i[None, :], i[:, None], 0.5 + 0 * i[:, None]), axis=-1) for r, i in ((16, i16), (32, i32))]
+        loss = mls_mpm.ColorLoss(targets, colors, weights=[0.0, 1.0], ot_weights=[1.0, 0.0], blur=1.5, tol=1e-12)
     elif kind == "ot_unbalanced":
         loss = mls_mpm.OTLoss([disk_mass(16, (0.6, 0.55), 0.1, density=2.0)], blur=1.5, reach=0.3, tol=1e-12)
     else:
@@ -94,16 +101,17 @@ def fd_directional(sim, c, d, eps=EPS):
     return (sim.forward(c + eps * d) - sim.forward(c - eps * d)) / (2 * eps)
 
 
-KINDS = ["position", "mass", "log_mass", "color", "ot", "ot_unbalanced"]
+KINDS = ["position", "mass", "log_mass", "color", "ot", "ot_unbalanced", "color_ot"]
 # The OT losses' directional derivatives are small (~1e-6 and ~1e-8 of losses ~0.04 and ~4e-4), so at eps = 1e-6
 # the cancellation error 1e-16 |L| / eps is ~1e-5 of them; at 1e-4 it is ~1e-7 and the truncation ~eps^2 below it.
-FD_EPS = {"ot": 1e-4, "ot_unbalanced": 1e-4}
+FD_EPS = {"ot": 1e-4, "ot_unbalanced": 1e-4, "color_ot": 1e-4}
 
 
 # ------------------------------------------------------------------ manual vs Tape vs finite differences
 @pytest.mark.parametrize("kind", ["position", "mass", "ot", pytest.param("log_mass", marks=pytest.mark.slow),
                                   pytest.param("color", marks=pytest.mark.slow),
-                                  pytest.param("ot_unbalanced", marks=pytest.mark.slow)])
+                                  pytest.param("ot_unbalanced", marks=pytest.mark.slow),
+                                  pytest.param("color_ot", marks=pytest.mark.slow)])
 def test_manual_gradient_matches_tape(problems, kind):
     """backward() (eq 41-71) vs ti.ad.Tape over the same p2g/grid_op/g2p and loss kernels: rel err <= 1e-6.
 

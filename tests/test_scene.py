@@ -326,7 +326,14 @@ REFUSALS = [
     ("loss", 'kind = "position"', r'scene\.target = "img/square\.png": expected no target image with '
                                   r'loss\.kind = "position"'),
     ("loss", "ot_blur = 2.0", r'loss\.ot_blur = 2\.0: expected no ot_blur with loss\.kind = "mass" \(it sets the '
-                              r'optimal-transport loss, loss\.kind = "ot"\)$'),
+                              r'optimal-transport loss, loss\.kind = "ot" or "color"\)$'),
+    ("loss", "ot_weights = [1.0]", r'loss\.ot_weights = \[1\.0\]: expected no ot_weights with loss\.kind = "mass" '
+                                   r'\(it sets the optimal-transport loss, loss\.kind = "color"\)$'),
+    ("loss", 'kind = "color"\nweights = [0.0]\not_weights = [0.0]',
+     r'loss\.weights = \[0\.0\]: expected on every loss grid a colour weight \(loss\.weights\) or a transport '
+     r'weight \(loss\.ot_weights\) > 0'),
+    ("loss", 'kind = "color"\not_weights = [1.0, 2.0]', r'loss\.ot_weights = \[1\.0, 2\.0\]: expected one weight per '
+                                                       r'loss grid \(1'),
     ("loss", "ot_reach = 0.3", r'loss\.ot_reach = 0\.3: expected no ot_reach with loss\.kind = "mass"'),
     ("loss", 'kind = "color"\nmass_weights = [1.0]', r'loss\.mass_weights = \[1\.0\]: expected no mass_weights with '
                                                     r'loss\.kind = "color"'),
