@@ -16,7 +16,8 @@ reproduces the run and a user can edit it:
   and the eq 11 mass loss on the fine grid, which shapes the detail; each term weighted by 1 / its value at
   rest, so both start at 1 whatever the shapes' sizes; a coarse stage (OT alone) first, then both
   (optimize.schedule). Colour images (`--loss color`, or two images of more than one colour region each):
-  the colour loss (eq 13) on the coarse and fine grids, coarse first;
+  the same with colours: the transport of each colour channel's colour-mass on the coarse grid and eq 13 on
+  the fine one;
 - L-BFGS, the quality's iteration count and time budget (optimize.max_seconds).
 """
 from __future__ import annotations
@@ -29,7 +30,7 @@ import numpy as np
 
 from .errors import UserError
 from .images import ImageError, check_image, load_image, material, sample_particles, splat_grid
-from .losses import OT_BLUR
+from .losses import COLOR_EMPTY, OT_BLUR
 from .ot import sinkhorn_divergence
 from .scene_keys import NAME_MAX, parse_override, toml_text, valid_name
 
@@ -54,8 +55,8 @@ class Quality:
 
 
 QUALITIES = {
-    "fast": Quality(n_grid=32, iterations=30, max_seconds=25.0),
-    "default": Quality(n_grid=64, iterations=80, max_seconds=110.0),
+    "fast": Quality(n_grid=32, iterations=60, max_seconds=25.0),
+    "default": Quality(n_grid=64, iterations=120, max_seconds=110.0),
     "best": Quality(n_grid=64, iterations=250, max_seconds=0.0),
 }
 
@@ -187,10 +188,13 @@ def choose(initial, target, quality="default", loss="auto", seconds=None, sets=(
                      "max_seconds": q.max_seconds if seconds is None else float(seconds)},
     }
     if use_color:
-        kind = "color"
-        values = [0.5 * float(np.sum((splat_grid(x0, m_p, r, c0) - splat_grid(xt, m_t, r, ct)) ** 2))
-                  for r in (coarse, fine)]
-        sections["loss"] = {"kind": "color", "grids": [coarse, fine], "weights": [_weight(v) for v in values]}
+        color_value = 0.5 * float(np.sum((splat_grid(x0, m_p, fine, c0) - splat_grid(xt, m_t, fine, ct)) ** 2))
+        body, aim = splat_grid(x0, m_p, coarse, c0), splat_grid(xt, m_t, coarse, ct)
+        ot_value = sum(sinkhorn_divergence(body[..., c], aim[..., c], OT_BLUR / coarse).value for c in range(3)
+                       if body[..., c].sum() > COLOR_EMPTY * body.sum() and aim[..., c].sum() > COLOR_EMPTY * aim.sum())
+        kind = "colour transport + colour"
+        sections["loss"] = {"kind": "color", "grids": [coarse, fine], "weights": [0.0, _weight(color_value)],
+                            "ot_weights": [_weight(ot_value), 0.0], "ot_blur": OT_BLUR}
     else:
         kind = "ot + mass"
         ot_value = sinkhorn_divergence(splat_grid(x0, m_p, coarse), splat_grid(xt, m_t, coarse),
