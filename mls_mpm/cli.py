@@ -78,6 +78,16 @@ def positive(text):
     return value
 
 
+def run_options(parser, what, command):
+    """The options `run` and `morph` share: --set, --arch, --resume, --no-render, --quiet."""
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help=f"override {what} (repeatable)")
+    parser.add_argument("--arch", choices=["cpu", "gpu"], help="override sim.arch")
+    parser.add_argument("--resume", action="store_true", help=f"continue an interrupted {command} from its checkpoint")
+    parser.add_argument("--no-render", action="store_true", help="skip frames, gif and sheet")
+    parser.add_argument("--quiet", action="store_true", help="print only the final line")
+
+
 def build_parser():
     from .scene import RENDER_MODES, RENDER_SIZE_MAX, RENDER_SIZE_MIN
 
@@ -89,12 +99,7 @@ def build_parser():
     run = sub.add_parser("run", formatter_class=fmt, help="optimize a scene and render its animation")
     run.add_argument("scene", help="scene file (TOML), see scenes/README.md")
     run.add_argument("--out", help="output folder (default: renders/<scene name>/)")
-    run.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                     help="override a scene key, e.g. --set sim.n_grid=128 (repeatable)")
-    run.add_argument("--arch", choices=["cpu", "gpu"], help="override sim.arch")
-    run.add_argument("--resume", action="store_true", help="continue an interrupted run from its checkpoint")
-    run.add_argument("--no-render", action="store_true", help="skip frames, gif and sheet")
-    run.add_argument("--quiet", action="store_true", help="print only the final line")
+    run_options(run, "a scene key, e.g. --set sim.n_grid=128", "run")
 
     morph = sub.add_parser("morph", formatter_class=fmt,
                            help="morph one image into another: settings chosen from the two shapes, no scene file")
@@ -112,12 +117,7 @@ def build_parser():
     morph.add_argument("--keep-position", action="store_true",
                        help="keep the target where its image puts it (default: moved onto the body's centre of "
                             "mass, which internal controls cannot move)")
-    morph.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                       help="override any chosen scene key, e.g. --set sim.steps=300 (repeatable)")
-    morph.add_argument("--arch", choices=["cpu", "gpu"], help="override sim.arch")
-    morph.add_argument("--resume", action="store_true", help="continue an interrupted morph from its checkpoint")
-    morph.add_argument("--no-render", action="store_true", help="skip frames, gif and sheet")
-    morph.add_argument("--quiet", action="store_true", help="print only the final line")
+    run_options(morph, "any chosen scene key, e.g. --set sim.steps=300", "morph")
 
     check = sub.add_parser("check", formatter_class=fmt,
                            help="compare the manual gradient with ti.ad.Tape and finite differences")

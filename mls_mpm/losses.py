@@ -80,12 +80,7 @@ class ColorLoss:
     """
 
     def __init__(self, targets, colors, weights=None, ot_weights=None, blur=OT_BLUR, tol=OT_TOL):
-        weights = [1.0] * len(_list(targets)) if weights is None else list(weights)
-        ot_weights = [0.0] * len(weights) if ot_weights is None else list(ot_weights)
-        if len(ot_weights) != len(weights) or any(not (np.isfinite(w) and w >= 0) for w in weights + ot_weights):
-            raise LossError(f"weights, ot_weights: expected one number >= 0 each per target grid ({len(weights)})")
-        if any(w + ow <= 0 for w, ow in zip(weights, ot_weights)):
-            raise LossError("weights, ot_weights: expected a colour or a transport weight > 0 on every grid")
+        weights, ot_weights = _two_terms(targets, weights, ot_weights, "ot_weights", "a colour or a transport")
         if not (np.isfinite(blur) and blur > 0):
             raise LossError(f"blur: expected a number > 0 (cells), got {blur!r}")
         specs = _grid_specs("color", targets, [w or 1.0 for w in weights], None, channels=3)  # 0: checked above
@@ -127,12 +122,7 @@ class OTLoss:
             raise LossError(f"reach: expected a number > 0 (domain units) or None, got {reach!r}")
         if not (np.isfinite(tol) and tol > 0):
             raise LossError(f"tol: expected a number > 0, got {tol!r}")
-        weights = [1.0] * len(_list(targets)) if weights is None else list(weights)
-        mass_weights = [0.0] * len(weights) if mass_weights is None else list(mass_weights)
-        if len(mass_weights) != len(weights) or any(not (np.isfinite(w) and w >= 0) for w in weights + mass_weights):
-            raise LossError(f"weights, mass_weights: expected one number >= 0 each per target grid ({len(weights)})")
-        if any(w + mw <= 0 for w, mw in zip(weights, mass_weights)):
-            raise LossError("weights, mass_weights: expected a transport or a mass weight > 0 on every grid")
+        weights, mass_weights = _two_terms(targets, weights, mass_weights, "mass_weights", "a transport or a mass")
         specs = _grid_specs("ot", targets, [w or 1.0 for w in weights], None, channels=1)  # 0: checked above
         for spec in specs:
             if not spec.target.sum() > 0:
@@ -151,6 +141,18 @@ def _array(a, name):
     if not np.all(np.isfinite(a)):
         raise LossError(f"{name}: holds NaN or Inf")
     return a
+
+
+def _two_terms(targets, weights, others, name, what):
+    """(weights, others) of a loss with two terms per grid: lists of numbers >= 0, one per target grid, with
+    one term > 0 on every grid (weights default to 1, others to 0)."""
+    weights = [1.0] * len(_list(targets)) if weights is None else list(weights)
+    others = [0.0] * len(weights) if others is None else list(others)
+    if len(others) != len(weights) or any(not (np.isfinite(w) and w >= 0) for w in weights + others):
+        raise LossError(f"weights, {name}: expected one number >= 0 each per target grid ({len(weights)})")
+    if any(w + o <= 0 for w, o in zip(weights, others)):
+        raise LossError(f"weights, {name}: expected {what} weight > 0 on every grid")
+    return weights, others
 
 
 def _list(targets):

@@ -91,3 +91,15 @@ def random_unit(shape, seed):
     """A random direction of unit 2-norm, for directional finite differences."""
     d = np.random.default_rng(seed).standard_normal(shape)
     return d / np.linalg.norm(d)
+
+
+class StopAt:
+    """should_stop that turns true at its n-th call (gd calls it after each control step and after each temporal
+    iteration; adam, positions and lbfgs after each step or iteration, right after its checkpoint)."""
+
+    def __init__(self, n):
+        self.n, self.calls = n, 0
+
+    def __call__(self):
+        self.calls += 1
+        return self.calls >= self.n

@@ -18,6 +18,8 @@ from mls_mpm.optimize import METHODS, adam, gd, lbfgs, positions
 from mls_mpm.scene import load_scene
 from mls_mpm.simulator import Simulator
 
+from conftest import StopAt
+
 TINY = Path(__file__).resolve().parent / "data" / "tiny.toml"
 
 
@@ -200,15 +202,6 @@ def test_gd_with_restarts_matches_gd_with_full_resimulation(sim, scene):
 # call with resume=<that checkpoint> (on a simulator whose stored steps were overwritten meanwhile) must end exactly
 # where an uninterrupted run ends. gd calls should_stop after every control step (K = 4 per temporal iteration)
 # and once more after each temporal iteration; adam and positions after every step, lbfgs after every iteration.
-
-class StopAt:
-    def __init__(self, n):
-        self.n, self.calls = n, 0
-
-    def __call__(self):
-        self.calls += 1
-        return self.calls >= self.n
-
 
 def interrupted_then_resumed(sim, method, opts, n):
     saved = []

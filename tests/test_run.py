@@ -22,6 +22,8 @@ from mls_mpm.run import run_scene
 from mls_mpm.scene import load_scene
 from mls_mpm.simulator import Simulator
 
+from conftest import StopAt
+
 TINY = Path(__file__).resolve().parent / "data" / "tiny.toml"
 BASE = ["optimize.iterations=3", "optimize.tol=0.0", "sim.schedule=serial"]  # serial: a bit-identical replay
 SUMMARY_KEYS = {"scene", "loss_initial", "loss_final", "iou", "mass_outside_target", "mass_error", "iterations",
@@ -55,18 +57,6 @@ def scene_of(*overrides):
 
 def result(out):
     return load_npz(Path(out) / "result.npz", "result")
-
-
-class StopAt:
-    """should_stop that turns true at its n-th call (gd calls it after each control step, K = 4 per temporal
-    iteration, and after each temporal iteration; adam after each step)."""
-
-    def __init__(self, n):
-        self.n, self.calls = n, 0
-
-    def __call__(self):
-        self.calls += 1
-        return self.calls >= self.n
 
 
 @pytest.fixture(scope="module")

@@ -17,7 +17,7 @@ import pytest
 import taichi as ti
 
 import mls_mpm
-from conftest import blob, random_controls, rel_err, scene_config
+from conftest import StopAt, blob, random_controls, rel_err, scene_config
 from mls_mpm import SimConfig, problem, runtime
 from mls_mpm.checkpoint import load_npz
 from mls_mpm.optimize import OptimizeResult
@@ -261,17 +261,6 @@ def run(scene, out, **kwargs):
 
 def scene_of(*overrides):
     return load_scene(TINY, [*STAGED, *overrides])
-
-
-class StopAt:
-    """should_stop that turns true at its n-th call (lbfgs calls it after each iteration's checkpoint)."""
-
-    def __init__(self, n):
-        self.n, self.calls = n, 0
-
-    def __call__(self):
-        self.calls += 1
-        return self.calls >= self.n
 
 
 @pytest.fixture(scope="module")
