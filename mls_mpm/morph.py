@@ -16,8 +16,9 @@ reproduces the run and a user can edit it:
   and the eq 11 mass loss on the fine grid, which shapes the detail; each term weighted by 1 / its value at
   rest, so both start at 1 whatever the shapes' sizes; a coarse stage (OT alone) first, then both
   (optimize.schedule). Colour images (`--loss color`, or two images of more than one colour region each):
-  the same with colours: the transport of each colour channel's colour-mass on the coarse grid and eq 13 on
-  the fine one;
+  the transport of each colour channel's colour-mass on the coarse grid and eq 13 on the fine one, both from
+  the first iteration (a coarse stage of colour transport alone left color_swap's colours scrambled: iou 0.36
+  against 0.87 without it);
 - L-BFGS, the quality's iteration count and time budget (optimize.max_seconds).
 """
 from __future__ import annotations
@@ -202,7 +203,9 @@ def choose(initial, target, quality="default", loss="auto", seconds=None, sets=(
         mass_value = 0.5 * float(np.sum((splat_grid(x0, m_p, fine) - splat_grid(xt, m_t, fine)) ** 2))
         sections["loss"] = {"kind": "ot", "grids": [coarse, fine], "weights": [_weight(ot_value), 0.0],
                             "mass_weights": [0.0, _weight(mass_value)], "ot_blur": OT_BLUR}
-    sections["optimize"]["schedule"] = [{"grids": [coarse], "share": 1.0}, {"grids": [coarse, fine], "share": 2.0}]
+    if not use_color:  # colours: both terms from the start (the colour transport alone scrambles what eq 13 then fixes)
+        sections["optimize"]["schedule"] = [{"grids": [coarse], "share": 1.0},
+                                            {"grids": [coarse, fine], "share": 2.0}]
     for (section, key), value in given.items():
         sections.setdefault(section, {})[key] = value
     text = _toml(sections, quality, kind)
