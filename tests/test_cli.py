@@ -494,7 +494,7 @@ def test_run_maps_an_interrupted_run_to_its_signal(monkeypatch, tmp_path, sig, c
     import mls_mpm.run
     from mls_mpm.errors import Interrupted
 
-    def run_scene(scene, out, resume=False, emit=print, should_stop=None, render=True):
+    def run_scene(scene, out, resume=False, emit=print, should_stop=None, render=True, files=None):
         signal.raise_signal(sig)
         assert should_stop()
         if how == "raises":
