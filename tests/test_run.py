@@ -96,6 +96,25 @@ def test_summary_has_sensible_values(runs):
     assert "color_error" not in summary  # colour scenes only
 
 
+def test_summary_color_error_is_that_of_the_final_colours(tmp_path):
+    """A colour run's color_error is the largest per-channel mass_error of the final colour-mass grid against
+    the target's (problem.color_error), recomputed here from result.npz; it lies in [0, 1]."""
+    images = Path(__file__).resolve().parents[1] / "scenes" / "images"
+    scene = scene_of(f"scene.initial={json.dumps(str(images / 'color_halves.png'))}",
+                     f"scene.target={json.dumps(str(images / 'color_swap_target.png'))}", "loss.kind=color",
+                     "optimize.iterations=1")
+    summary = run(scene, tmp_path / "color", render=False)
+    _, arrays = result(tmp_path / "color")
+    res, cfg = scene.loss.grids[0], scene.sim
+    m_t = cfg.m_p * len(arrays["final_x"]) / len(arrays["target_points"])  # target_density "match"
+    final = splat_grid(arrays["final_x"], cfg.m_p, res, arrays["colors"])
+    target = splat_grid(arrays["target_points"], m_t, res, arrays["target_colors"])
+    expected = max(0.5 * np.abs(final[..., c] - target[..., c]).sum() / target[..., c].sum() for c in range(3)
+                   if target[..., c].sum() > 0)
+    assert summary["color_error"] == pytest.approx(expected, rel=1e-12)
+    assert 0.2 < summary["color_error"] <= 1.0  # swapped halves: far from the target after one iteration
+
+
 def test_summary_iou_is_that_of_the_final_shape(runs):
     """iou and mass_outside_target measure the final particles against the target on the loss grid."""
     scene, summary, out = runs("gd")
