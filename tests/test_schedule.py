@@ -145,6 +145,10 @@ class FakeSim:
         self.log.append(self.active)
         return 10.0 * len(self.active) + float(c)
 
+    def backward(self):
+        """dL/dc of the last forward (staged compiles the kernels with one forward and backward under a budget)."""
+        return 1.0
+
 
 def fake_method(clock, seconds_per_iteration, starts):
     """An optimizer that lowers the controls by 1 per iteration, taking seconds_per_iteration of the fake clock;
@@ -207,6 +211,30 @@ def test_stage_deadlines_split_the_time_left_by_share():
     assert res.iterations == 4 + 6 and clock.t == 1000.0 + 300.0
     assert res.reason == BUDGET_REASON and res.converged is False
     assert len(res.losses) == (1 + 4) + (1 + 6)
+
+
+class CompilingSim(FakeSim):
+    """A FakeSim whose first backward takes `compile_seconds` of the clock, like Taichi compiling the kernels."""
+
+    def __init__(self, clock, compile_seconds):
+        super().__init__()
+        self.clock, self.compile_seconds, self.compiled = clock, compile_seconds, False
+
+    def backward(self):
+        if not self.compiled:
+            self.clock.t += self.compile_seconds
+            self.compiled = True
+        return 1.0
+
+
+def test_the_kernels_compile_before_the_stage_clocks_start():
+    """300 s with 60 s of compilation: the stages split the 240 s left after it (stage 1 gets 80 s by shares 1, 2,
+    not 100 s less the compilation); stage 1's 2 iterations of 1 s leave the last stage 238 s."""
+    clock, starts, lines = Clock(), [], []
+    run = staged(fake_method(clock, 1.0, starts), [Stage((16,), 1.0), Stage((16, 32), 2.0)], max_seconds=300.0,
+                 clock=clock)
+    run(CompilingSim(clock, 60.0), 0.0, settings(6), emit=lines.append)
+    assert stage_seconds(lines) == [80.0, 238.0]
 
 
 def test_a_stage_finishing_early_leaves_its_time_to_the_next():
