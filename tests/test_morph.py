@@ -106,9 +106,10 @@ def test_the_chosen_scene_loads_with_steps_in_bounds(tmp_path, initial, target, 
     assert scene.sim.n_grid == morph.QUALITIES[quality].n_grid
     assert scene.optimize.method == "lbfgs" and scene.optimize.iterations == morph.QUALITIES[quality].iterations
     assert scene.optimize.max_seconds == morph.QUALITIES[quality].max_seconds
-    # the stages: the coarse grid first, then every grid
+    # the stages: the coarse grid first, then every grid; colour scenes: both from the start (no schedule)
     grids = scene.loss.grids
-    assert [s["grids"] for s in scene.optimize.schedule] == [(min(grids),), tuple(grids)]
+    stages = [s["grids"] for s in scene.optimize.schedule]
+    assert stages == ([] if scene.loss.kind == "color" else [(min(grids),), tuple(grids)])
     assert scene.initial == (IMAGES / initial).resolve() and scene.target == (IMAGES / target).resolve()
 
 
@@ -123,13 +124,19 @@ def test_steps_cover_the_travel_at_the_peak_speed():
 
 
 def test_a_farther_target_gets_at_least_as_many_steps(tmp_path):
+    """With the target kept where its image puts it (--keep-position); by default it is moved onto the body's
+    centre of mass, and the same translated disks then need no travel at all."""
     a = disk_image(tmp_path / "a.png", (20, 32))
-    chosen = [morph.choose(a, disk_image(tmp_path / f"b{dx}.png", (20 + dx, 32)), "fast") for dx in (0, 8, 16, 24)]
+    targets = [disk_image(tmp_path / f"b{dx}.png", (20 + dx, 32)) for dx in (0, 8, 16, 32)]
+    chosen = [morph.choose(a, b, "fast", keep_position=True) for b in targets]
+    centred = [morph.choose(a, b, "fast") for b in targets]
+    assert all(c.distance < 1e-12 and c.steps == morph.MIN_STEPS for c in centred), [c.distance for c in centred]
+    assert all(abs(c.shift[0]) > 0.1 for c in centred[2:]) and all(abs(c.shift[1]) < 0.01 for c in centred)
     distances = [c.distance for c in chosen]
     steps = [c.steps for c in chosen]
     assert distances[0] < 1e-12 and all(b > a for a, b in zip(distances, distances[1:])), distances
     assert all(b >= a for a, b in zip(steps, steps[1:])), steps
-    assert steps[-1] > steps[0], steps  # 24 of 64 pixels (0.375) is beyond what MIN_STEPS covers
+    assert steps[-1] > steps[0], steps  # 32 of 64 pixels (0.31 of the domain, fitted) is beyond what MIN_STEPS covers
 
 
 def test_the_loss_follows_the_images_and_the_loss_option(tmp_path):
