@@ -6,6 +6,7 @@ gradient difference below ROUND_OFF |L| (per unit of the controls), or a central
 ROUND_OFF |L| / EPS, cannot be told from round-off (a particle whose controls barely reach the loss has a
 gradient of 1e-19 and a finite difference of exactly 0).
 """
+import copy
 import dataclasses
 import math
 
@@ -13,9 +14,15 @@ import numpy as np
 
 from . import problem as problems
 from .errors import UserError
-from .losses import ColorLoss, PositionLoss
+from .losses import OT_KINDS, ColorLoss, PositionLoss
 
 EPS = 1e-6  # central-difference step along each random direction
+# With an optimal-transport term the directional derivatives are small beside the loss, so at 1e-6 the
+# cancellation error (~1e-16 |L| / eps) reaches ~1e-5 of them; 1e-4 keeps it ~1e-7 and the truncation (~eps^2)
+# below that (tests/test_gradients.py FD_EPS). Sinkhorn then runs to OT_TOL_CHECK, so that the value and its
+# gradient agree to round-off.
+EPS_OT = 1e-4
+OT_TOL_CHECK = 1e-12
 DIRECTIONS = 3  # random directions of the finite-difference check
 ROUND_OFF = 64 * float(np.finfo(np.float64).eps)  # relative round-off of a float64 loss: 64 ulps
 TINY = 1e-300
@@ -72,7 +79,10 @@ def reduced(scene, steps, particles):
     if isinstance(loss, PositionLoss):
         loss = PositionLoss(loss.target[keep])
     elif isinstance(loss, ColorLoss):
-        loss = ColorLoss([g.target for g in loss.grids], loss.colors[keep], [g.weight for g in loss.grids])
+        loss = loss.restricted(keep)
+    if any(g.kind in OT_KINDS for g in loss.grids):
+        loss = copy.copy(loss)
+        loss.grids = tuple(dataclasses.replace(g, tol=OT_TOL_CHECK) if g.kind in OT_KINDS else g for g in loss.grids)
     return cfg, prob.x0[keep], loss
 
 
@@ -88,13 +98,14 @@ def check_scene(scene, args, emit=print, seed=0):
     L = sim.forward(c)
     g = sim.backward()
     g_tape = sim.gradient_tape(c)
+    eps = EPS_OT if any(grid.kind in OT_KINDS for grid in loss.grids) else EPS
     fd = []
     for _ in range(DIRECTIONS):
         d = rng.standard_normal(c.shape)
-        plus, minus = sim.forward(c + EPS * d), sim.forward(c - EPS * d)
-        fd.append((float(np.sum(g * d)), (plus - minus) / (2 * EPS), max(abs(L), abs(plus), abs(minus))))
+        plus, minus = sim.forward(c + eps * d), sim.forward(c - eps * d)
+        fd.append((float(np.sum(g * d)), (plus - minus) / (2 * eps), max(abs(L), abs(plus), abs(minus))))
     tape = Comparison.of(g, g_tape, ROUND_OFF * abs(L))
-    diffs = [Comparison.of(gd, f, ROUND_OFF * size / EPS) for gd, f, size in fd]
+    diffs = [Comparison.of(gd, f, ROUND_OFF * size / eps) for gd, f, size in fd]
     worst = max(diffs, key=lambda e: (not e.ok(args.tol_fd), e.rel))
     ok = tape.ok(args.tol_tape) and all(e.ok(args.tol_fd) for e in diffs)
     emit(f"{scene.name} (reduced: {len(x0)} particles, {cfg.steps} steps, stride {cfg.stride}, f64)")

@@ -7,6 +7,7 @@ loss is bit-identical run after run; their work (one splat of the particles, one
 is small beside the steps'.
 """
 
+import copy
 from dataclasses import dataclass
 
 import numpy as np
@@ -94,6 +95,12 @@ class ColorLoss:
     def check(self, n_particles):
         if len(self.colors) != n_particles:
             raise LossError(f"colors: {len(self.colors)} rows, expected one per particle ({n_particles})")
+
+    def restricted(self, keep):
+        """The same loss (grids, weights, transport terms) for the particles `keep` only: their colours."""
+        out = copy.copy(self)
+        out.colors = self.colors[keep]
+        return out
 
 
 class OTLoss:

@@ -270,6 +270,35 @@ def test_check_passes_and_prints_relative_errors():
     assert "300 particles, 12 steps" in stdout
 
 
+def test_check_passes_on_the_transport_loss():
+    """The OT loss (transport on the 16 grid, eq 11 on the 32 grid): check runs Sinkhorn to round-off and steps its
+    finite differences by check.EPS_OT; both comparisons pass (at the production tolerance and step 1e-6 the
+    finite differences were 2e-5 off)."""
+    sets = ["loss.kind=ot", "loss.grids=[16, 32]", "loss.weights=[1.0, 0.0]", "loss.mass_weights=[0.0, 1.0]"]
+    fresh_taichi()
+    code, stdout, stderr = call("check", TINY, "--steps", "6", "--particles", "120",
+                                *[a for s in sets for a in ("--set", s)])
+    assert code == 0, stdout + stderr
+    found = [(float(a), float(b)) for a, b in CHECK_LINE.findall(stdout)]
+    assert len(found) == 2 and all(0.0 <= err <= tol for err, tol in found), stdout
+
+
+def test_check_keeps_a_colour_loss_transport_term():
+    """check's reduced copy of a colour loss keeps its grids (eq 13 and colour transport) and subsamples the
+    particles' colours."""
+    from mls_mpm.check import reduced
+    from mls_mpm.scene import load_scene
+
+    images = ROOT / "scenes" / "images"
+    scene = load_scene(TINY, [f"scene.initial={images / 'color_halves.png'}",
+                              f"scene.target={images / 'color_swap_target.png'}", "loss.kind=color",
+                              "loss.grids=[16, 32]", "loss.weights=[0.0, 1.0]", "loss.ot_weights=[1.0, 0.0]"])
+    _, x0, loss = reduced(scene, 6, 50)
+    assert [(g.kind, g.res) for g in loss.grids] == [("color", 32), ("color_ot", 16)]
+    assert len(loss.colors) == len(x0) == 50
+    assert all(g.tol == 1e-12 for g in loss.grids if g.kind == "color_ot")
+
+
 def test_render_refuses_a_folder_another_job_holds(tmp_path):
     """`render` takes the output folder's lock like `run`: while another job holds it, one line, exit 2."""
     from mls_mpm.lock import folder_lock
