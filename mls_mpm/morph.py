@@ -9,7 +9,7 @@ reproduces the run and a user can edit it:
 - steps long enough for the distance the mass has to travel: the optimal assignment of a subsample of the
   initial particles to as many target particles (scipy's linear_sum_assignment, the exact discrete transport
   plan) gives every particle's distance; the plan's 90th percentile d is travelled at a peak speed of
-  SPEED cells per step (a quarter cell: well inside the CFL limit of one cell), accelerating and braking, in
+  SPEED cells per step (half a cell: inside the CFL limit of one cell), accelerating and braking, in
   2 d / speed steps, plus SETTLE steps to come to rest, rounded up to the control stride, within
   [MIN_STEPS, MAX_STEPS];
 - the loss: optimal transport (loss.kind = "ot") on the coarse grid, which pulls material wherever it is,
@@ -35,7 +35,7 @@ from .losses import COLOR_EMPTY, OT_BLUR
 from .ot import sinkhorn_divergence
 from .scene_keys import NAME_MAX, parse_override, toml_text, valid_name
 
-SPEED = 0.25  # peak material speed, cells per step
+SPEED = 0.5  # peak material speed, cells per step (0.25 left thin strokes short of iterations: steps cost time)
 SETTLE = 40  # steps after the travel for the body to come to rest
 MIN_STEPS, MAX_STEPS = 100, 400
 PLAN_SAMPLES = 600  # particles of each shape in the transport plan that sets the number of steps
