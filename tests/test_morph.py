@@ -130,7 +130,8 @@ def test_a_farther_target_gets_at_least_as_many_steps(tmp_path):
     targets = [disk_image(tmp_path / f"b{dx}.png", (20 + dx, 32)) for dx in (0, 8, 16, 32)]
     chosen = [morph.choose(a, b, "default", keep_position=True) for b in targets]  # 64^2: 0.31 of travel needs
     centred = [morph.choose(a, b, "default") for b in targets]  # more than MIN_STEPS at SPEED cells per step
-    assert all(c.distance < 1e-12 and c.steps == morph.MIN_STEPS for c in centred), [c.distance for c in centred]
+    spacing = 1.0 / morph.QUALITIES["default"].n_grid / 2  # 4 particles per cell; subsampled plans: 2 spacings
+    assert all(c.distance < 2 * spacing and c.steps == morph.MIN_STEPS for c in centred), [c.distance for c in centred]
     assert all(abs(c.shift[0]) > 0.1 for c in centred[2:]) and all(abs(c.shift[1]) < 0.01 for c in centred)
     distances = [c.distance for c in chosen]
     steps = [c.steps for c in chosen]
