@@ -3,8 +3,8 @@ the colour regions of an image, the scene chosen from two images (valid, steps w
 stride, more steps for a farther target, the loss kind of the images, --set winning, a coarser grid for --quality
 fast), its one-line refusals, and a tiny run whose DIR/scene.toml reproduces it with `mls-mpm run`.
 
-The constants of morph (SPEED, SETTLE, the qualities) are being tuned: the tests check relations between choices,
-not today's numbers. Runs: --quality fast (32 x 32 grid), sim.steps = 20, 2 L-BFGS iterations, --seconds 600 so
+The tests check relations between choices through morph's constants (SPEED, SETTLE, the qualities), not their
+values, which the quality benchmark tunes. Runs: --quality fast (32 x 32 grid), sim.steps = 20, 2 L-BFGS iterations, --seconds 600 so
 that the iteration count, not a slow first compile, ends them.
 """
 import json
