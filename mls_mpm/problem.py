@@ -130,14 +130,11 @@ def loss_grids(ls) -> list:
     if ls.kind == "position":
         return []
     channels = 3 if ls.kind == "color" else 1
-    if ls.kind == "color":  # eq 13 where the weight is > 0, colour transport where the ot weight is
-        ot_weights = ls.ot_weights or (0.0,) * len(ls.grids)
-        return [(res, 3, False) for res, w in zip(ls.grids, ls.weights) if w > 0] + \
-            [(res, 3, False) for res, w in zip(ls.grids, ot_weights) if w > 0]
-    if ls.kind == "ot":  # a transport term where the weight is > 0, eq 11 where the mass weight is
-        mass_weights = ls.mass_weights or (0.0,) * len(ls.grids)
-        return [(res, 1, False) for res, w in zip(ls.grids, ls.weights) if w > 0] + \
-            [(res, 1, False) for res, w in zip(ls.grids, mass_weights) if w > 0]
+    second = {"color": ls.ot_weights, "ot": ls.mass_weights}  # the grids' second term: colour transport, eq 11
+    if ls.kind in second:  # a grid of each term whose weight is > 0, in the loss's order (first terms first)
+        others = second[ls.kind] or (0.0,) * len(ls.grids)
+        return [(res, channels, False) for weights in (ls.weights, others)
+                for res, w in zip(ls.grids, weights) if w > 0]
     return [(res, channels, bool(ls.penalty)) for res in ls.grids]
 
 

@@ -9,9 +9,9 @@ the detail. Without a schedule there is one stage holding every loss grid.
 
 The budget (`optimize.max_seconds`, 0: none) is a deadline for the whole run, compile time included. The
 kernels are compiled first (one forward and backward pass), then a stage that starts with R seconds left gets
-R * its share / the shares left; one that finishes early leaves its time to the next. An optimizer past its deadline stops after its current unit of work, like an interrupt, and its
-controls (the best so far: every optimizer here only accepts decreases, except adam) are the result, with the
-stop reason "time budget".
+R * its share / the shares left; one that finishes early leaves its time to the next. An optimizer past its
+deadline stops after its current unit of work, like an interrupt, and its controls (the best so far: every
+optimizer here only accepts decreases, except adam) are the result, with the stop reason "time budget".
 
 The checkpoint of a staged run is the inner optimizer's state plus STAGE_STATE: which stage it is in, and the
 losses, gradient norms and iterations of the stages before. A stage that had finished when the run was
