@@ -157,8 +157,8 @@ def choose(initial, target, quality="default", loss="auto", seconds=None, sets=(
     p0, rgba0 = _image(initial, "INITIAL")
     pt, rgbat = _image(target, "TARGET")
     given = _overrides(sets)
-    n = int(given.get(("sim", "n_grid"), q.n_grid)) if isinstance(given.get(("sim", "n_grid"), q.n_grid), int) \
-        else q.n_grid
+    n = given.get(("sim", "n_grid"), q.n_grid)
+    n = n if isinstance(n, int) and not isinstance(n, bool) and n >= 2 else q.n_grid  # a bad one: load_scene says so
     ppc = given.get(("sim", "particles_per_cell"), q.particles_per_cell)
     ppc = ppc if isinstance(ppc, int) and 1 <= ppc <= 1024 else q.particles_per_cell
     try:
