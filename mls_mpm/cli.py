@@ -244,7 +244,7 @@ def cmd_morph(args):
     from pathlib import Path
 
     from .morph import choose
-    from .scene import load_scene
+    from .scene import SceneError, load_scene
 
     arch = [f"sim.arch={args.arch}"] if args.arch else []
     choice = choose(args.initial, args.target, args.quality, args.loss, args.seconds, list(args.set) + arch,
@@ -253,7 +253,10 @@ def cmd_morph(args):
     with tempfile.TemporaryDirectory() as tmp:  # validated before anything is written
         path = Path(tmp) / "scene.toml"
         path.write_text(choice.text)
-        scene = load_scene(path)
+        try:
+            scene = load_scene(path)
+        except SceneError as e:  # name the scene the user would have got, not the temporary file
+            raise SceneError(str(e).replace(str(path.resolve()), f"morph's scene for {out / 'scene.toml'}")) from None
     args.loaded = dataclasses.replace(scene, path=(out / "scene.toml").resolve())
     args.out = str(out)
     if not args.quiet:

@@ -211,12 +211,15 @@ def test_bad_input_is_one_line_and_creates_nothing(tmp_path, capsys, case):
     assert not out.exists()
 
 
-def test_a_bad_set_is_one_line_and_creates_nothing(tmp_path, capsys):
+@pytest.mark.parametrize("bad", ["sim.steps=-3", "sim.n_grid=0"])
+def test_a_bad_set_is_one_line_and_creates_nothing(tmp_path, capsys, bad):
+    """The line names the key and the scene morph would have written, not its temporary file."""
     out = tmp_path / "m"
     capsys.readouterr()
     assert main(["morph", str(IMAGES / "circle_small.png"), str(IMAGES / "torus.png"), "--out", str(out),
-                 "--set", "sim.steps=-3"]) == 2
-    assert "sim.steps" in one_error_line(capsys)
+                 "--set", bad]) == 2
+    line = one_error_line(capsys)
+    assert bad.split("=")[0] in line and f"morph's scene for {out / 'scene.toml'}" in line, line
     assert not out.exists()
 
 
