@@ -5,20 +5,20 @@ from mls_mpm.grid import free_velocity, wall_mask
 
 
 @ti.func
-def grid_op_node_reverse(s: ti.template(), a: ti.template(), f, i, j):
+def grid_op_node_reverse(s: ti.template(), a: ti.template(), f, I):
     """dL/dp_i = M dL/dv_i / m_i (eq 50), dL/dm_i = -(p_i / m_i) . M dL/dv_i / m_i (eq 52-53), M the wall mask.
 
     With gravity's impulse and the guard, v = (p + m dt g) / (m + m_eps): dL/dp_i = M dL/dv_i / (m_i + m_eps)
     and dL/dm_i = (dt g - v_free) . dL/dp_i, which is eq 52-53 up to m_eps (v_free - dt g = p_i / m_i).
     """
-    v_free = free_velocity(s, f, i, j)
-    adj_p = a.adj_grid_v[i, j] * wall_mask(s, ti.Vector([i, j]), v_free) / (s.grid_m[f, i, j] + s.m_eps)
-    a.adj_grid_p[i, j] = adj_p
-    a.adj_grid_m[i, j] = (s.dt * ti.Vector(s.gravity) - v_free).dot(adj_p)
+    v_free = free_velocity(s, f, I)
+    adj_p = a.adj_grid_v[I] * wall_mask(s, I, v_free) / (s.grid_m[f, I] + s.m_eps)
+    a.adj_grid_p[I] = adj_p
+    a.adj_grid_m[I] = (s.dt * ti.Vector(s.gravity) - v_free).dot(adj_p)
 
 
 @ti.kernel
 def grid_op_reverse(s: ti.template(), a: ti.template(), f: ti.i32):
     """Reverse grid operations of step f (twin of mls_mpm.grid.grid_op)."""
-    for i, j in ti.ndrange(s.n_grid, s.n_grid):
-        grid_op_node_reverse(s, a, f, i, j)
+    for I in ti.grouped(ti.ndrange(*s.grid_shape)):
+        grid_op_node_reverse(s, a, f, I)

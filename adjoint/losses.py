@@ -1,7 +1,7 @@
 """Back-propagation initialization (eq 41-46): the loss seeds on the final step's particles, twins of mls_mpm.losses."""
 import taichi as ti
 
-from mls_mpm.kernels import node_weight, stencil, weights
+from mls_mpm.kernels import node_weight, offsets, on_grid, stencil, weights
 from mls_mpm.losses import OT_KINDS, node_penalty, node_residual, splat_value
 
 from .state import zero_step
@@ -31,11 +31,11 @@ def splat_reverse(s: ti.template(), g: ti.template(), a: ti.template(), f: ti.i3
         base, fx = stencil(s.x[f, p], g.inv_dx)
         w, dw = weights(fx)
         value = splat_value(s, g, p)
-        adj_x = ti.Vector.zero(float, 2)
-        for i, j in ti.static(ti.ndrange(4, 4)):
-            I = base + ti.Vector([i, j])
-            if 0 <= I[0] < g.res and 0 <= I[1] < g.res:
-                _, dN = node_weight(w, dw, ti.Vector([i, j]), g.inv_dx)
+        adj_x = ti.Vector.zero(float, s.dim)
+        for o in ti.static(offsets(s.dim)):
+            I = base + o
+            if on_grid(I, g.m):
+                _, dN = node_weight(w, dw, o, g.inv_dx)
                 adj_x += dN * value.dot(g.adj_m[I])
         a.adj_x[f % 2, p] += adj_x
 

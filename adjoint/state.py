@@ -7,27 +7,28 @@ class AdjointState:
     """dL/d(.) of one State. Particle adjoints of step f live in slot f % 2."""
 
     def __init__(self, s, dtype):
-        N, n = s.n_particles, s.n_grid
-        self.adj_x = ti.Vector.field(2, dtype, shape=(2, N))  # dL/dx_p
-        self.adj_v = ti.Vector.field(2, dtype, shape=(2, N))  # dL/dv_p
-        self.adj_C = ti.Matrix.field(2, 2, dtype, shape=(2, N))  # dL/dC_p
-        self.adj_F = ti.Matrix.field(2, 2, dtype, shape=(2, N))  # dL/dF_p (= dL/dF_pc, eq 55)
-        self.adj_grid_m = ti.field(dtype, shape=(n, n))  # dL/dm_i
-        self.adj_grid_p = ti.Vector.field(2, dtype, shape=(n, n))  # dL/dp_i
-        self.adj_grid_v = ti.Vector.field(2, dtype, shape=(n, n))  # dL/dv_i
-        self.adj_F_pc = ti.Matrix.field(2, 2, dtype, shape=(s.n_controls, N))  # dL/dF_pc^k, the result
+        N, d, grid = s.n_particles, s.dim, s.grid_shape
+        self.adj_x = ti.Vector.field(d, dtype, shape=(2, N))  # dL/dx_p
+        self.adj_v = ti.Vector.field(d, dtype, shape=(2, N))  # dL/dv_p
+        self.adj_C = ti.Matrix.field(d, d, dtype, shape=(2, N))  # dL/dC_p
+        self.adj_F = ti.Matrix.field(d, d, dtype, shape=(2, N))  # dL/dF_p (= dL/dF_pc, eq 55)
+        self.adj_grid_m = ti.field(dtype, shape=grid)  # dL/dm_i
+        self.adj_grid_p = ti.Vector.field(d, dtype, shape=grid)  # dL/dp_i
+        self.adj_grid_v = ti.Vector.field(d, dtype, shape=grid)  # dL/dv_i
+        self.adj_F_pc = ti.Matrix.field(d, d, dtype, shape=(s.n_controls, N))  # dL/dF_pc^k, the result
         # the latest step f whose adjoint went non-finite, and its lowest particle p, as f * N + (N - 1 - p); -1: none
         self.fault = ti.field(ti.i64, shape=())
         if s.lanes:
-            self.lane_adj_v = ti.Vector.field(2, dtype, shape=(s.lanes, n, n))  # one thread's private dL/dv_i
+            self.lane_adj_v = ti.Vector.field(d, dtype, shape=(s.lanes,) + grid)  # one thread's private dL/dv_i
 
 
 @ti.func
 def zero_particle(a: ti.template(), slot, p):
-    a.adj_x[slot, p] = ti.Vector.zero(float, 2)
-    a.adj_v[slot, p] = ti.Vector.zero(float, 2)
-    a.adj_C[slot, p] = ti.Matrix.zero(float, 2, 2)
-    a.adj_F[slot, p] = ti.Matrix.zero(float, 2, 2)
+    d = ti.static(a.adj_x.n)
+    a.adj_x[slot, p] = ti.Vector.zero(float, d)
+    a.adj_v[slot, p] = ti.Vector.zero(float, d)
+    a.adj_C[slot, p] = ti.Matrix.zero(float, d, d)
+    a.adj_F[slot, p] = ti.Matrix.zero(float, d, d)
 
 
 @ti.kernel
@@ -36,5 +37,5 @@ def zero_step(s: ti.template(), a: ti.template(), f: ti.i32):
     for p in range(s.n_particles):
         zero_particle(a, 0, p)
         zero_particle(a, 1, p)
-    for i, j in ti.ndrange(s.n_grid, s.n_grid):
-        a.adj_grid_v[i, j] = ti.Vector.zero(float, 2)
+    for I in ti.grouped(ti.ndrange(*s.grid_shape)):
+        a.adj_grid_v[I] = ti.Vector.zero(float, s.dim)

@@ -11,22 +11,22 @@ from .transfer import check_particle_reverse, g2p_particle_reverse, p2g_particle
 
 
 @ti.func
-def gather_lanes_reverse(s: ti.template(), a: ti.template(), i, j):
+def gather_lanes_reverse(s: ti.template(), a: ti.template(), I):
     """dL/dv_i = the sum of the threads' private grids, which are zeroed for the next reverse step."""
-    adj_v = ti.Vector.zero(float, 2)
+    adj_v = ti.Vector.zero(float, s.dim)
     for lane in ti.static(range(s.lanes)):
-        adj_v += a.lane_adj_v[lane, i, j]
-        a.lane_adj_v[lane, i, j] = ti.Vector.zero(float, 2)
-    a.adj_grid_v[i, j] = adj_v
+        adj_v += a.lane_adj_v[lane, I]
+        a.lane_adj_v[lane, I] = ti.Vector.zero(float, s.dim)
+    a.adj_grid_v[I] = adj_v
 
 
 @ti.func
-def grid_node_reverse(s: ti.template(), a: ti.template(), f, i, j):
-    """Reverse grid operations of node (i, j); then dL/dv_i is zeroed for the next reverse step's scatter."""
+def grid_node_reverse(s: ti.template(), a: ti.template(), f, I):
+    """Reverse grid operations of node I; then dL/dv_i is zeroed for the next reverse step's scatter."""
     if ti.static(s.lanes > 0):
-        gather_lanes_reverse(s, a, i, j)
-    grid_op_node_reverse(s, a, f, i, j)
-    a.adj_grid_v[i, j] = ti.Vector.zero(float, 2)
+        gather_lanes_reverse(s, a, I)
+    grid_op_node_reverse(s, a, f, I)
+    a.adj_grid_v[I] = ti.Vector.zero(float, s.dim)
 
 
 @ti.func
@@ -44,8 +44,8 @@ def step_loops_reverse(s: ti.template(), a: ti.template(), f):
     else:
         for p in range(s.n_particles):
             g2p_particle_reverse(s, a, f, p, 0)
-    for i, j in ti.ndrange(s.n_grid, s.n_grid):
-        grid_node_reverse(s, a, f, i, j)
+    for I in ti.grouped(ti.ndrange(*s.grid_shape)):
+        grid_node_reverse(s, a, f, I)
     for p in range(s.n_particles):
         p2g_particle_reverse(s, a, f, p)
         zero_particle(a, (f + 1) % 2, p)

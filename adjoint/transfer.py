@@ -1,7 +1,7 @@
 """Reverse G2P (eq 47-48, 66-69), reverse P2G (eq 54-65, 71) and the adjoint's fault check for one step f."""
 import taichi as ti
 
-from mls_mpm.kernels import inside, node_weight, stencil, weights
+from mls_mpm.kernels import inside, node_weight, offsets, stencil, weights
 from mls_mpm.material import stress
 from mls_mpm.transfer import affine_momentum, control_sum
 
@@ -9,12 +9,12 @@ from .material import stress_reverse
 
 
 @ti.func
-def scatter_adj_node(s: ti.template(), a: ti.template(), lane, i, j, adj_v):
-    """dL/dv_i += adj_v, or into this thread's private grid `lane` (as mls_mpm.transfer.scatter_node does)."""
+def scatter_adj_node(s: ti.template(), a: ti.template(), lane, I, adj_v):
+    """dL/dv_i += adj_v at node I, or into this thread's private grid `lane` (as mls_mpm.transfer.scatter_node)."""
     if ti.static(s.lanes > 0):
-        a.lane_adj_v[lane, i, j] = a.lane_adj_v[lane, i, j] + adj_v
+        a.lane_adj_v[lane, I] = a.lane_adj_v[lane, I] + adj_v
     else:
-        a.adj_grid_v[i, j] += adj_v
+        a.adj_grid_v[I] += adj_v
 
 
 @ti.func
@@ -41,18 +41,18 @@ def g2p_particle_reverse(s: ti.template(), a: ti.template(), f, p, lane):
         adj_C_new = a.adj_C[src, p] + s.dt * adj_F_next @ Fs.transpose()
         k = 3.0 * s.inv_dx * s.inv_dx
         adj_x = adj_x_next
-        sum_v = ti.Vector.zero(float, 2)  # sum_i N v_i
-        for i, j in ti.static(ti.ndrange(4, 4)):
-            N, dN = node_weight(w, dw, ti.Vector([i, j]), s.inv_dx)
-            dpos = (ti.Vector([i, j]) - fx) * s.dx
-            v_i = s.grid_v[f, base[0] + i, base[1] + j]
+        sum_v = ti.Vector.zero(float, s.dim)  # sum_i N v_i
+        for o in ti.static(offsets(s.dim)):
+            N, dN = node_weight(w, dw, o, s.inv_dx)
+            dpos = (o - fx) * s.dx
+            v_i = s.grid_v[f, base + o]
             adj_v_i = adj_v_new + k * adj_C_new @ dpos
-            scatter_adj_node(s, a, lane, base[0] + i, base[1] + j, N * adj_v_i)
+            scatter_adj_node(s, a, lane, base + o, N * adj_v_i)
             adj_x += dN * v_i.dot(adj_v_i)  # adj_C_new : v_i dpos^T = v_i . adj_C_new dpos
             sum_v += N * v_i
         adj_x -= k * adj_C_new.transpose() @ sum_v
         a.adj_x[dst, p] += adj_x
-        a.adj_F[dst, p] += (ti.Matrix.identity(float, 2) + s.dt * s.C[f + 1, p]).transpose() @ adj_F_next
+        a.adj_F[dst, p] += (ti.Matrix.identity(float, s.dim) + s.dt * s.C[f + 1, p]).transpose() @ adj_F_next
 
 
 @ti.func
@@ -75,14 +75,14 @@ def p2g_particle_reverse(s: ti.template(), a: ti.template(), f, p):
         G = affine_momentum(s, f, p, Fs)
         drag = s.m_p * (1.0 - s.dt * s.gamma)
         mv = drag * s.v[f, p]
-        adj_x = ti.Vector.zero(float, 2)
-        sum_adj_p = ti.Vector.zero(float, 2)  # sum_i N dL/dp_i
-        adj_G = ti.Matrix.zero(float, 2, 2)
-        for i, j in ti.static(ti.ndrange(4, 4)):
-            N, dN = node_weight(w, dw, ti.Vector([i, j]), s.inv_dx)
-            dpos = (ti.Vector([i, j]) - fx) * s.dx
-            adj_m_i = a.adj_grid_m[base[0] + i, base[1] + j]
-            adj_p_i = a.adj_grid_p[base[0] + i, base[1] + j]
+        adj_x = ti.Vector.zero(float, s.dim)
+        sum_adj_p = ti.Vector.zero(float, s.dim)  # sum_i N dL/dp_i
+        adj_G = ti.Matrix.zero(float, s.dim, s.dim)
+        for o in ti.static(offsets(s.dim)):
+            N, dN = node_weight(w, dw, o, s.inv_dx)
+            dpos = (o - fx) * s.dx
+            adj_m_i = a.adj_grid_m[base + o]
+            adj_p_i = a.adj_grid_p[base + o]
             adj_x += dN * (s.m_p * adj_m_i + adj_p_i.dot(mv + G @ dpos))
             sum_adj_p += N * adj_p_i
             adj_G += N * adj_p_i.outer_product(dpos)

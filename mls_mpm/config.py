@@ -13,6 +13,8 @@ ARCHS = ("cpu", "gpu", "cuda", "vulkan")
 SCHEDULES = ("auto", "serial", "parallel")
 SERIAL_BELOW = 4000  # particles + grid nodes under which "auto" runs serially on a CPU
 STENCIL = 4  # the cubic B-spline touches 4 nodes per axis (base = floor(x/dx) - 1)
+DIMS = (2, 3)  # the dimensions the simulator runs in
+GRAVITY = -9.8  # default gravity along y (axis 1), in 2D and 3D
 MAX_THREADS = 1024  # CPU threads a simulation may ask for
 MAX_PARTICLES_PER_CELL = 1024  # particles sampled per cell (per cell volume in 3D)
 
@@ -41,20 +43,23 @@ class ConfigError(UserError):
 
 @dataclass(frozen=True)
 class SimConfig:
-    """Settings of one simulation. Domain: the unit square; dx = 1 / n_grid.
+    """Settings of one simulation. Domain: the unit square (dim = 2) or cube (dim = 3); dx = 1 / n_grid.
 
-    n_grid: nodes per axis of the simulation grid.
+    dim: 2 or 3; every kernel is one code path for both (vectors of size dim, a 4^dim stencil).
+    n_grid: nodes per axis of the simulation grid (n_grid^dim nodes).
     steps: number of time steps N_t simulated by `Simulator.forward`.
     dt: time step (s).
     E, nu: Young's modulus and Poisson ratio of the fixed-corotated material (eq 9).
-    density: rest density; particle rest volume V_p^0 = dx^2 / particles_per_cell, mass m_p = density V_p^0.
+    density: rest density; particle rest volume V_p^0 = dx^dim / particles_per_cell, mass m_p = density V_p^0.
     gamma: drag coefficient of eq 16; gamma * dt must stay below 1.
-    gravity: acceleration; every node gains the impulse m_i dt g before eq 17's division.
+    gravity: acceleration, dim numbers (default: -9.8 along y, (0, -9.8) or (0, -9.8, 0)); every node gains
+        the impulse m_i dt g before eq 17's division.
     boundary: "slip" zeroes the velocity component into a wall, "sticky" the whole velocity,
         on nodes closer than `bound` cells to an edge.
     bound: width of the wall zone in cells.
     stride: control stride s; control k acts at step k*s, K = ceil(steps / s) controls.
-    particles_per_cell: sets V_p^0 and the image sampling density (at most MAX_PARTICLES_PER_CELL).
+    particles_per_cell: particles per cell area (2D) or volume (3D): sets V_p^0 and the sampling density
+        (at most MAX_PARTICLES_PER_CELL).
     dtype: "f64" or "f32" for every field and kernel.
     arch: "cpu", or "gpu" (CUDA, else Vulkan), "cuda", "vulkan"; runtime.ensure refuses one that cannot start.
     threads: CPU threads, at most MAX_THREADS (0: the cores this process may run on, `default_threads()`);
@@ -66,6 +71,7 @@ class SimConfig:
         (0: 90% of the memory available when it is built).
     """
 
+    dim: int = 2
     n_grid: int = 64
     steps: int = 200
     dt: float = 1e-4
@@ -73,7 +79,7 @@ class SimConfig:
     nu: float = 0.2
     density: float = 1.0
     gamma: float = 0.0
-    gravity: tuple = (0.0, -9.8)
+    gravity: tuple = None
     boundary: str = "slip"
     bound: int = 3
     stride: int = 10
@@ -85,7 +91,14 @@ class SimConfig:
     max_memory_gb: float = 0.0
 
     def __post_init__(self):
-        object.__setattr__(self, "gravity", tuple(float(g) for g in self.gravity))
+        if isinstance(self.dim, bool) or self.dim not in DIMS:
+            raise ConfigError(f"dim = {self.dim!r}: expected 2 or 3")
+        if self.gravity is None:
+            object.__setattr__(self, "gravity", (0.0, GRAVITY) + (0.0,) * (self.dim - 2))
+        try:
+            object.__setattr__(self, "gravity", tuple(float(g) for g in self.gravity))
+        except (TypeError, ValueError):
+            raise ConfigError(f"gravity = {self.gravity!r}: expected {self.dim} finite numbers") from None
         _check_int(self, "n_grid", min_n_grid(self.bound) if isinstance(self.bound, int) else min_n_grid(0))
         _check_int(self, "steps", 1)
         _check_int(self, "stride", 1)
@@ -105,8 +118,9 @@ class SimConfig:
             raise ConfigError(
                 f"gamma * dt = {self.gamma * self.dt:g}: expected < 1, or the momentum factor (1 - dt gamma) "
                 "of eq 16 flips sign; lower gamma or dt")
-        if len(self.gravity) != 2 or not all(math.isfinite(g) for g in self.gravity):
-            raise ConfigError(f"gravity = {self.gravity!r}: expected two finite numbers")
+        if len(self.gravity) != self.dim or not all(math.isfinite(g) for g in self.gravity):
+            raise ConfigError(f"gravity = {self.gravity!r}: expected {self.dim} finite numbers (one per axis, "
+                              f"dim = {self.dim})")
         if self.stride > self.steps:
             raise ConfigError(f"stride = {self.stride}: expected at most steps = {self.steps}")
         if self.dt > self.cfl_dt:
@@ -130,7 +144,7 @@ class SimConfig:
     @property
     def vol(self) -> float:
         """Particle rest volume V_p^0."""
-        return self.dx ** 2 / self.particles_per_cell
+        return self.dx ** self.dim / self.particles_per_cell
 
     @property
     def m_p(self) -> float:
@@ -164,7 +178,7 @@ class SimConfig:
         """Whether stepping runs serially in one launch (see `schedule`)."""
         if self.schedule != "auto":
             return self.schedule == "serial"
-        return self.arch == "cpu" and n_particles + self.n_grid ** 2 < SERIAL_BELOW
+        return self.arch == "cpu" and n_particles + self.n_grid ** self.dim < SERIAL_BELOW
 
     def lanes(self, n_particles) -> int:
         """Private scatter grids (one per CPU thread) of the parallel schedule; 0: atomics (GPU) or serial."""

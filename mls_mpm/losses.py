@@ -1,7 +1,8 @@
 """Losses on the final step: position (eq 10), mass (eq 11, 72), log mass, color (eq 12-13), optimal transport.
 
 The loss classes hold user data (numpy); the kernels below evaluate them on a State.
-A target array's shape sets its loss grid's resolution; entry [i, j] is the node at (i dx, j dx).
+A target array's shape sets its loss grid's resolution and dimension: (res, res) in 2D, (res, res, res) in 3D
+(colour: one more axis of 3); entry [i, j] (3D: [i, j, k]) is the node at (i dx, j dx[, k dx]).
 On a CPU the kernels' loops run serially (State.serial_losses): their float sums then have one order, so a
 loss is bit-identical run after run; their work (one splat of the particles, one pass over each loss grid)
 is small beside the steps'.
@@ -38,16 +39,25 @@ class GridSpec:
     reach: float | None = None  # OT grids: None (balanced) or the unbalanced reach in domain units
     tol: float = OT_TOL  # OT grids: the Sinkhorn stopping tolerance
 
+    @property
+    def dim(self):
+        """2 or 3: target holds (res,) * dim nodes of one or three channels."""
+        return self.target.ndim - 1
+
 
 class PositionLoss:
-    """Eq 10: sum_p 1/2 |x_p - x_pu|^2 against per-particle target positions (N, 2)."""
+    """Eq 10: sum_p 1/2 |x_p - x_pu|^2 against per-particle target positions (N, dim)."""
 
     grids = ()
 
     def __init__(self, target_positions):
         self.target = _array(target_positions, "target_positions")
-        if self.target.ndim != 2 or self.target.shape[1] != 2:
-            raise LossError(f"target_positions: expected shape (N, 2), got {self.target.shape}")
+        if self.target.ndim != 2 or self.target.shape[1] not in (2, 3):
+            raise LossError(f"target_positions: expected shape (N, 2) or (N, 3), got {self.target.shape}")
+
+    @property
+    def dim(self):
+        return self.target.shape[1]
 
     def check(self, n_particles):
         if len(self.target) != n_particles:
@@ -57,8 +67,8 @@ class PositionLoss:
 class MassLoss:
     """Eq 11 / 72 on one or more loss grids (thesis 8.1): sum_g w_g sum_i 1/2 alpha_i (m_i - m_iu)^2.
 
-    targets: list of (res, res) target mass grids; weights: one per grid (default 1);
-    alpha: one per grid, a (res, res) penalty array or None (alpha = 1); log: use the log mass loss
+    targets: list of (res, res) target mass grids ((res, res, res) in 3D); weights: one per grid (default 1);
+    alpha: one per grid, a penalty array of the target's shape or None (alpha = 1); log: use the log mass loss
     1/2 (ln(m_i + 1) - ln(m_iu + 1))^2 per node instead of eq 11.
     """
 
@@ -76,7 +86,7 @@ class ColorLoss:
     target is red however far it is (eq 13, like eq 11, reaches two cells). A channel empty in the body or the
     target of a grid is left out of its transport term.
 
-    targets: list of (res, res, 3) target color-mass grids; colors: (N, 3) particle RGB; weights: eq 13's, one
+    targets: list of (res, res, 3) target color-mass grids ((res, res, res, 3) in 3D); colors: (N, 3) particle RGB; weights: eq 13's, one
     per grid (0: none); ot_weights: the transport term's, one per grid (default none); blur, tol: as OTLoss.
     """
 
@@ -112,7 +122,7 @@ class OTLoss:
     target gets no gradient (thesis 8.1); the transport cost pulls every node towards where the target's mass
     is. Its gradient dS/dm_i (the Sinkhorn potentials) seeds the reverse pass like dL/dm_i of eq 41.
 
-    targets: list of (res, res) target mass grids; weights: one per grid (default 1); blur: sigma in cells of
+    targets: list of (res, res) target mass grids ((res, res, res) in 3D); weights: one per grid (default 1); blur: sigma in cells of
     each grid (smaller: closer to the exact transport cost, more Sinkhorn iterations; below about res / 34
     cells the slower dense log-sum-exp is used); reach: None for the balanced divergence between the normalised
     grids (where the body ends up is compared, not how much mass it has), else the unbalanced divergence in which
@@ -133,7 +143,7 @@ class OTLoss:
         specs = _grid_specs("ot", targets, [w or 1.0 for w in weights], None, channels=1)  # 0: checked above
         for spec in specs:
             if not spec.target.sum() > 0:
-                raise LossError(f"targets: the {spec.res}^2 grid holds no mass; optimal transport needs some")
+                raise LossError(f"targets: the {spec.res}^{spec.dim} grid holds no mass; optimal transport needs some")
         transport = tuple(GridSpec("ot", g.res, w, g.target, None, float(blur), reach, float(tol))
                           for g, w in zip(specs, weights) if w > 0)
         mass = tuple(GridSpec("mass", g.res, float(w), g.target, None) for g, w in zip(specs, mass_weights) if w > 0)
@@ -176,18 +186,22 @@ def _grid_specs(kind, targets, weights, alpha, channels):
     if len(weights) != len(targets) or len(alpha) != len(targets):
         raise LossError(f"weights/alpha: expected one per target grid ({len(targets)})")
     specs = []
+    ch = ", 3" if channels == 3 else ""
     for t, w, a in zip(targets, weights, alpha):
-        shape = (t.shape[0], t.shape[0]) + ((3,) if channels == 3 else ())
-        if t.shape != shape or t.shape[0] < 4:
-            raise LossError(f"targets: expected square grids of shape (res, res{', 3' if channels == 3 else ''}) "
-                            f"with res >= 4, got {t.shape}")
+        dim = t.ndim - (channels == 3)
+        shape = (t.shape[0],) * dim + ((3,) if channels == 3 else ())
+        if dim not in (2, 3) or t.shape != shape or t.shape[0] < 4:
+            raise LossError(f"targets: expected square grids of shape (res, res{ch}) or cubic ones of shape "
+                            f"(res, res, res{ch}) with res >= 4, got {t.shape}")
+        if specs and dim != specs[0].dim:
+            raise LossError(f"targets: grids of {specs[0].dim} and {dim} dimensions in one loss")
         if not (np.isfinite(w) and w > 0):
             raise LossError(f"weights: expected numbers > 0, got {w!r}")
         if a is not None:
             a = _array(a, "alpha")
-            if a.shape != t.shape[:2] or np.any(a < 0):
-                raise LossError(f"alpha: expected a ({t.shape[0]}, {t.shape[0]}) array >= 0, got shape {a.shape}")
-        specs.append(GridSpec(kind, t.shape[0], float(w), t.reshape(t.shape[0], t.shape[0], channels), a))
+            if a.shape != t.shape[:dim] or np.any(a < 0):
+                raise LossError(f"alpha: expected a {t.shape[:dim]} array >= 0, got shape {a.shape}")
+        specs.append(GridSpec(kind, t.shape[0], float(w), t.reshape(t.shape[:dim] + (channels,)), a))
     return tuple(specs)
 
 
@@ -232,8 +246,7 @@ def node_penalty(g: ti.template(), I):
 def grid_loss(s: ti.template(), g: ti.template()):
     """L += w_g sum_i 1/2 alpha_i |r_i|^2 (eq 11, 13, 72)."""
     ti.loop_config(serialize=s.serial_losses)
-    for i, j in ti.ndrange(g.res, g.res):  # a range, not a struct-for, which Taichi cannot serialize
-        I = ti.Vector([i, j])
+    for I in ti.grouped(ti.ndrange(*g.shape)):  # a range, not a struct-for, which Taichi cannot serialize
         s.loss[None] += 0.5 * node_penalty(g, I) * node_residual(g, I).norm_sqr()
 
 
@@ -249,7 +262,7 @@ def ot_loss(s, g):
     """L += w_g S(m, m_u) on an OT grid (OTLoss), or w_g sum_c S(c_c, c_u,c) over the colour channels of a
     colour OT grid (ColorLoss ot_weights); writes w_g dS/dm_i into g.seed, which the reverse pass reads as
     dL/dm_i (adjoint.losses.ot_loss_reverse) and the Tape as the weights of its linear stand-in (seed_loss)."""
-    m = g.m.to_numpy().astype(np.float64)  # (res, res, channels)
+    m = g.m.to_numpy().astype(np.float64)  # (res,) * dim + (channels,)
     target = g.target_np.reshape(m.shape)
     seed, value = np.zeros_like(m), 0.0
     for c in range(m.shape[-1]):
@@ -266,8 +279,7 @@ def ot_loss(s, g):
 @ti.kernel
 def seed_loss(s: ti.template(), g: ti.template()):
     """L += sum_i seed_i m_i: the Tape's linear stand-in for ot_loss, whose derivative is the same seed."""
-    for i, j in ti.ndrange(g.res, g.res):
-        I = ti.Vector([i, j])
+    for I in ti.grouped(ti.ndrange(*g.shape)):
         s.loss[None] += g.seed[I].dot(g.m[I])
 
 

@@ -28,7 +28,7 @@ class Part:
 
 def loss_grid_shapes(loss):
     """(res, channels, has_alpha) of each loss grid of a PositionLoss, MassLoss, ColorLoss or OTLoss (or None)."""
-    return [(g.res, g.target.shape[-1] if g.target.ndim == 3 else 1, g.alpha is not None)
+    return [(g.res, g.target.shape[-1], g.alpha is not None)
             for g in (loss.grids if loss is not None else ())]
 
 
@@ -39,41 +39,47 @@ def parts(cfg, n_particles, grids=(), position_loss=False, tape=False):
     particles carry colours; position_loss: the particles carry target positions.
     """
     w = 8 if cfg.dtype == "f64" else 4
-    N, T, n, K = n_particles, cfg.steps, cfg.n_grid, cfg.n_controls
+    N, T, n, K, d = n_particles, cfg.steps, cfg.n_grid, cfg.n_controls, cfg.dim
+    nodes = n ** d  # the grid grows as n_grid^dim per stored step
+    state = 2 * d + 2 * d * d  # x, v (d each), C, F (d^2 each) of one particle
+    node = 1 + 2 * d  # m, p, v of one node
+    sq = "^3" if d == 3 else "^2"
     copies = 2 if tape else 1  # needs_grad doubles every differentiated field
     colors = any(ch == 3 for _, ch, _ in grids)
     out = [
         Part(f"the particle states (x, v, C, F) of {T + 1} steps x {N} particles",
              "sim.steps or sim.particles_per_cell",
-             copies * (T + 1) * N * 12 * w),
-        Part(f"the grid states (m, p, v) of {T} steps on the {n}^2 grid", "sim.n_grid or sim.steps",
-             copies * T * n * n * 5 * w + (0 if tape else n * n * 5 * w)),  # + the adjoint's one grid
+             copies * (T + 1) * N * state * w),
+        Part(f"the grid states (m, p, v) of {T} steps on the {n}{sq} grid",
+             "sim.n_grid (in 3D the grid grows as n_grid^3 per stored step) or sim.steps" if d == 3 else
+             "sim.n_grid or sim.steps",
+             copies * T * nodes * node * w + (0 if tape else nodes * node * w)),  # + the adjoint's one grid
     ]
     lanes = 0 if tape else cfg.lanes(N)
     if lanes:  # forward private grids (m, p) and the adjoint's (dL/dv)
-        out.append(Part(f"the {lanes} per-thread grids of {n}^2 nodes", "sim.n_grid or sim.threads",
-                        lanes * n * n * (3 + 2) * w))
+        out.append(Part(f"the {lanes} per-thread grids of {n}{sq} nodes", "sim.n_grid or sim.threads",
+                        lanes * nodes * (1 + 2 * d) * w))  # m, p and dL/dv
     if grids:
         field = numpy = 0
         for res, ch, has_alpha in grids:
             # m (and its grad under the Tape, else the adjoint dL/dm), target (OT grids: the seed dL/dm), alpha;
             # numpy: target, alpha in f64 (OT grids keep theirs in numpy; their Sinkhorn work arrays are transient)
-            field += res * res * (3 * ch + has_alpha) * w
-            numpy += res * res * (ch + has_alpha) * F64
-        numpy += max(res * res * ch for res, ch, _ in grids) * w  # the upload's cast copy of one target
+            field += res ** d * (3 * ch + has_alpha) * w
+            numpy += res ** d * (ch + has_alpha) * F64
+        numpy += max(res ** d * ch for res, ch, _ in grids) * w  # the upload's cast copy of one target
         out.append(Part(f"the loss grids loss.grids = [{', '.join(str(r) for r, _, _ in grids)}]", "loss.grids",
                         field, numpy))
-    per_particle = (3 * colors + 2 * position_loss) * w  # colours c_p, target positions x_pu
-    controls = K * N * 4
+    per_particle = (3 * colors + d * position_loss) * w  # colours c_p, target positions x_pu
+    controls = K * N * d * d
     if tape:
         field = 2 * controls * w + N * per_particle + 2 * w + 2 * I64  # F_pc and its grad, loss, faults
-        numpy = controls * (w + 2 * F64) + N * 12 * F64  # the controls' upload, the gradient, the state of step 0
+        numpy = controls * (w + 2 * F64) + N * state * F64  # the controls' upload, the gradient, the state of step 0
     else:
         # F_pc, dL/dF_pc, the adjoint's two particle slots (x, v, C, F), loss, faults
-        field = 2 * controls * w + N * (24 * w + per_particle) + w + 3 * I64
+        field = 2 * controls * w + N * (2 * state * w + per_particle) + w + 3 * I64
         # the caller's controls, a trial or gradient copy and the returned gradient (f64), the upload's cast copy;
         # step 0's arrays (f64 and the cast)
-        numpy = controls * (3 * F64 + w) + N * 12 * (F64 + w)
+        numpy = controls * (3 * F64 + w) + N * state * (F64 + w)
     out.append(Part(f"the controls ({K} x {N} particles) and adjoints", "sim.particles_per_cell or steps / sim.stride",
                     field, numpy))
     return out
@@ -122,6 +128,6 @@ def check_memory(cfg, n_particles, grids=(), where="", position_loss=False, tape
         what = "the Tape's grad-enabled fields (gradient_tape) need" if tape else "the simulation needs"
         f32 = ", use sim.dtype = f32" if cfg.dtype == "f64" else ""
         raise ConfigError(f"{where}{what} about {need / 2 ** 30:.2f} GiB ({cfg.steps} steps, {n_particles} "
-                          f"particles, a {cfg.n_grid}^2 grid, {cfg.dtype}), above the limit of "
+                          f"particles, a {cfg.n_grid}^{cfg.dim} grid, {cfg.dtype}), above the limit of "
                           f"{max(allowed, 0) / 2 ** 30:.3g} GiB; the largest part is {big.what} "
                           f"({big.bytes / 2 ** 30:.2f} GiB): lower {big.lower}{f32}, or raise sim.max_memory_gb")

@@ -20,7 +20,8 @@ try:
 except ModuleNotFoundError:  # Python 3.10
     import tomli as tomllib
 
-from .config import (ARCHS, BOUNDARIES, DTYPES, MAX_PARTICLES_PER_CELL, MAX_THREADS, SCHEDULES, SimConfig)
+from .config import (ARCHS, BOUNDARIES, DTYPES, GRAVITY, MAX_PARTICLES_PER_CELL, MAX_THREADS, SCHEDULES,
+                     SimConfig)
 from .errors import UserError
 from .images import ImageError, check_image
 from .optimize import METHODS
@@ -178,7 +179,7 @@ SPEC = {
         "nu": (_SIM["nu"], _num(lambda x: 0 <= x < 0.5, "a Poisson ratio in [0, 0.5)")),
         "density": (_SIM["density"], _num(lambda x: x > 0, "a number > 0")),
         "gamma": (_SIM["gamma"], _num(lambda x: x >= 0, "a number >= 0")),
-        "gravity": (list(_SIM["gravity"]), _vec(2, "a list [gx, gy] of two numbers")),
+        "gravity": ([0.0, GRAVITY], _vec(2, "a list [gx, gy] of two numbers")),
         "boundary": (_SIM["boundary"], _choice(BOUNDARIES)),
         "bound": (_SIM["bound"], _int(0)),
         "particles_per_cell": (_SIM["particles_per_cell"], _int(1, MAX_PARTICLES_PER_CELL)),

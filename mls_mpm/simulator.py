@@ -37,15 +37,24 @@ def _check_backend(cfg, loss):
 
 
 def _largest_norm(controls):
-    """The largest Frobenius norm |F_pc| over controls (K, N, 2, 2), scaled so that 1e200 does not overflow."""
+    """The largest Frobenius norm |F_pc| over controls (K, N, dim, dim), scaled so that 1e200 does not overflow."""
     scale = float(np.max(np.abs(controls), initial=0.0))
     return scale * float(np.max(np.linalg.norm(controls / scale, axis=(2, 3)))) if scale > 0 else 0.0
+
+
+def _check_dim(cfg, loss):
+    """Refuse a loss whose targets have another dimension than the simulation."""
+    dims = {loss.dim} if isinstance(loss, PositionLoss) else {g.dim for g in loss.grids}
+    if dims - {cfg.dim}:
+        what = "target_positions" if isinstance(loss, PositionLoss) else "targets"
+        raise ValueError(f"loss {what}: {dims.pop()}D, but the simulation has dim = {cfg.dim}")
 
 
 class Simulator:
     """A differentiable MLS-MPM simulation of N particles over cfg.steps steps.
 
-    x0: (N, 2) initial positions (velocity 0, F = I, C = 0); loss: PositionLoss, MassLoss, ColorLoss or None.
+    x0: (N, dim) initial positions (velocity 0, F = I, C = 0); loss: PositionLoss, MassLoss, ColorLoss, OTLoss
+    or None, whose targets have cfg.dim dimensions.
     """
 
     def __init__(self, cfg, x0, loss=None):
@@ -53,12 +62,14 @@ class Simulator:
         self._built_for = str(runtime.RUNTIME.settings)
         self.cfg = cfg
         self.np_dtype = np.float64 if cfg.dtype == "f64" else np.float32
+        self.dim = d = cfg.dim
         x0 = np.asarray(x0, dtype=np.float64)
-        if x0.ndim != 2 or x0.shape[1] != 2 or len(x0) == 0:
-            raise ValueError(f"x0: expected shape (N, 2) with N >= 1, got {x0.shape}")
+        if x0.ndim != 2 or x0.shape[1] != d or len(x0) == 0:
+            raise ValueError(f"x0: expected shape (N, {d}) with N >= 1 (dim = {d}), got {x0.shape}")
         self.n_particles = len(x0)
         if loss is not None:
             loss.check(self.n_particles)
+            _check_dim(cfg, loss)
             _check_backend(cfg, loss)
         check_memory(cfg, self.n_particles, grids=loss_grid_shapes(loss), position_loss=isinstance(loss, PositionLoss))
         self.loss = loss
@@ -79,7 +90,7 @@ class Simulator:
 
     @property
     def control_shape(self):
-        return (self.cfg.n_controls, self.n_particles, 2, 2)
+        return (self.cfg.n_controls, self.n_particles, self.dim, self.dim)
 
     def zero_controls(self):
         return np.zeros(self.control_shape)
@@ -87,17 +98,17 @@ class Simulator:
     @_live
     def set_initial(self, x, v=None, C=None, F=None):
         """Set the state of step 0 (defaults: v = 0, C = 0, F = I). Used to chain animations (thesis 7.4)."""
-        N = self.n_particles
-        x = self._particle_array(x, "x", (N, 2))
-        v = np.zeros((N, 2)) if v is None else self._particle_array(v, "v", (N, 2))
-        C = np.zeros((N, 2, 2)) if C is None else self._particle_array(C, "C", (N, 2, 2))
-        F = np.tile(np.eye(2), (N, 1, 1)) if F is None else self._particle_array(F, "F", (N, 2, 2))
-        lo, hi = self.cfg.dx, 1.0 - 2.0 * self.cfg.dx  # the 4x4 stencil from floor(x/dx) - 1 stays on the grid
+        N, d = self.n_particles, self.dim
+        x = self._particle_array(x, "x", (N, d))
+        v = np.zeros((N, d)) if v is None else self._particle_array(v, "v", (N, d))
+        C = np.zeros((N, d, d)) if C is None else self._particle_array(C, "C", (N, d, d))
+        F = np.tile(np.eye(d), (N, 1, 1)) if F is None else self._particle_array(F, "F", (N, d, d))
+        lo, hi = self.cfg.dx, 1.0 - 2.0 * self.cfg.dx  # the 4^dim stencil from floor(x/dx) - 1 stays on the grid
         outside = np.flatnonzero(np.any((x < lo) | (x >= hi), axis=1))
         if len(outside):
             p = outside[0]
             raise ValueError(f"x: particle {p} at {tuple(np.round(x[p], 6))} lies outside [{lo:g}, {hi:g}) where "
-                             f"its stencil fits on the {self.cfg.n_grid}x{self.cfg.n_grid} grid")
+                             f"its stencil fits on the {'x'.join([str(self.cfg.n_grid)] * d)} grid")
         write_step(self.fields, 0, *(a.astype(self.np_dtype) for a in (x, v, C, F)))
         self._stored = 0
         self._forward_done = self._backward_done = False
@@ -117,7 +128,7 @@ class Simulator:
 
     @_live
     def forward(self, controls, start=0):
-        """Run steps start..N_t-1 with controls (K, N, 2, 2) of F_pc and return the loss of step N_t.
+        """Run steps start..N_t-1 with controls (K, N, dim, dim) of F_pc and return the loss of step N_t.
 
         A start > 0 reuses the stored state of step `start` from an earlier forward pass (controls
         before it must be unchanged); backward() then stops at that step too. A forward pass that raised
@@ -152,7 +163,7 @@ class Simulator:
 
     @_live
     def backward(self, stop=None):
-        """dL/dF_pc (K, N, 2, 2) of the last forward pass, from the hand-written reverse kernels.
+        """dL/dF_pc (K, N, dim, dim) of the last forward pass, from the hand-written reverse kernels.
 
         The reverse pass runs from step N_t down to `stop` (default: the last forward's start); controls
         acting before `stop` get zero gradient. Stored steps before the last forward's start must come from
@@ -200,13 +211,13 @@ class Simulator:
 
     @_live
     def evaluate_positions(self, x):
-        """Loss and dL/dx_p (eq 42-43) for final positions x (N, 2) placed at step N_t, without physics.
+        """Loss and dL/dx_p (eq 42-43) for final positions x (N, dim) placed at step N_t, without physics.
 
         The `positions` study of thesis 8.1 follows this gradient; it overwrites the stored x of step N_t
         (so backward() needs a new forward pass afterwards).
         """
         self._require_loss()
-        x = self._particle_array(x, "x", (self.n_particles, 2))
+        x = self._particle_array(x, "x", (self.n_particles, self.dim))
         s = self.fields
         T = self.cfg.steps
         self._forward_done = self._backward_done = False
@@ -222,9 +233,9 @@ class Simulator:
         """Particle state of stored step n as numpy arrays."""
         if not 0 <= n <= self.cfg.steps:
             raise ValueError(f"n = {n}: expected a step in [0, {self.cfg.steps}]")
-        N = self.n_particles
-        out = {k: np.zeros((N,) + shape, self.np_dtype) for k, shape in (("x", (2,)), ("v", (2,)), ("C", (2, 2)),
-                                                                        ("F", (2, 2)))}
+        N, d = self.n_particles, self.dim
+        out = {k: np.zeros((N,) + shape, self.np_dtype) for k, shape in (("x", (d,)), ("v", (d,)), ("C", (d, d)),
+                                                                        ("F", (d, d)))}
         read_step(self.fields, n, out["x"], out["v"], out["C"], out["F"])
         return {k: a.astype(np.float64) for k, a in out.items()}
 
@@ -277,7 +288,7 @@ class Simulator:
     def _controls(self, controls):
         controls = np.asarray(controls, dtype=np.float64)
         if controls.shape != self.control_shape:
-            raise ValueError(f"controls: expected shape {self.control_shape} (K, N, 2, 2), got {controls.shape}")
+            raise ValueError(f"controls: expected shape {self.control_shape} (K, N, dim, dim), got {controls.shape}")
         bad = np.argwhere(~self._finite_in_dtype(controls))
         if len(bad):
             k, p = bad[0][:2]
@@ -296,7 +307,7 @@ class Simulator:
         """What went wrong with particle p at step f, and the likely cause the settings point to."""
         cfg = self.cfg
         cell_speed = cfg.dx / cfg.dt  # one cell per step
-        g = math.hypot(*cfg.gravity)
+        g = math.hypot(*cfg.gravity)  # |g| in any dim
         causes = []
         if cfg.dt > cfg.cfl_dt:
             causes.append(f"dt = {cfg.dt:.6g} above the CFL limit {cfg.cfl_dt:.6g} for this E, nu and density "
@@ -310,11 +321,12 @@ class Simulator:
                           "(use smaller controls or optimize.clip)")
         if kind == FAULT_LEFT_GRID:
             v = self.fields.v[f, p]
-            speed = math.hypot(float(v[0]), float(v[1]))
+            speed = math.hypot(*(float(v[d]) for d in range(self.dim)))
             if not causes:
                 causes.append(f"its speed {speed:.3g} at step {f} against dx / dt = {cell_speed:.3g} (one cell per "
                               "step): controls or velocities too large for dt, or walls (bound) too thin")
-            return ("left the simulation grid (its 4x4 stencil would index outside it); likely cause: "
+            return (f"left the simulation grid (its {'x'.join(['4'] * self.dim)} stencil would index outside it); "
+                    "likely cause: "
                     + "; and ".join(causes))
         if not causes:
             causes.append(f"a singular control or a state grown too large (dt = {cfg.dt:.3g} is below the CFL "

@@ -18,16 +18,18 @@ class LossGrid:
     kind: "mass" (eq 11 / 72), "log_mass" (1/2 (ln(m+1) - ln(m_u+1))^2), "color" (eq 13), "ot" (the
     Sinkhorn divergence of losses.OTLoss, computed in numpy from m; its target stays in numpy, and the field
     `seed` holds its gradient dL/dm_i in place of the target field) or "color_ot" (the same per colour
-    channel, ColorLoss's ot_weights). Entry [i, j] is the node at (i dx, j dx)
-    with dx = 1 / res.
+    channel, ColorLoss's ot_weights). Entry [i, j] (3D: [i, j, k]) is the node at (i dx, j dx[, k dx])
+    with dx = 1 / res; the grid has res^dim nodes.
     """
 
-    def __init__(self, dtype, kind, res, weight, has_alpha, needs_grad=False, needs_adjoint=False, blur=0.0,
+    def __init__(self, dtype, dim, kind, res, weight, has_alpha, needs_grad=False, needs_adjoint=False, blur=0.0,
                  reach=None, tol=0.0):
         self.kind = kind
+        self.dim = dim
+        self.shape = (res,) * dim
         self.np_dtype = np.float64 if dtype == ti.f64 else np.float32
         self.blur, self.reach, self.tol = blur, reach, tol  # OT grids only
-        self.target_np = None  # OT grids: the target masses m_iu (res, res), set by upload_loss
+        self.target_np = None  # OT grids: the target masses m_iu (res,) * dim, set by upload_loss
         self.res = res
         self.dx = 1.0 / res
         self.inv_dx = float(res)
@@ -37,15 +39,15 @@ class LossGrid:
         channels = 3 if self.is_color else 1
         self.channels = channels
         # m: node mass (color-mass c_i for color grids, eq 12); target: m_iu or c_iu
-        self.m = ti.Vector.field(channels, dtype, shape=(res, res), needs_grad=needs_grad)
+        self.m = ti.Vector.field(channels, dtype, shape=self.shape, needs_grad=needs_grad)
         if kind in OT_KINDS:
-            self.seed = ti.Vector.field(channels, dtype, shape=(res, res))  # dL/dm_i of the last ot_loss
+            self.seed = ti.Vector.field(channels, dtype, shape=self.shape)  # dL/dm_i of the last ot_loss
         else:
-            self.target = ti.Vector.field(channels, dtype, shape=(res, res))
+            self.target = ti.Vector.field(channels, dtype, shape=self.shape)
         if has_alpha:
-            self.alpha = ti.field(dtype, shape=(res, res))  # penalty alpha_i of eq 72
+            self.alpha = ti.field(dtype, shape=self.shape)  # penalty alpha_i of eq 72
         if needs_adjoint:
-            self.adj_m = ti.Vector.field(channels, dtype, shape=(res, res))  # dL/dm_i (eq 41)
+            self.adj_m = ti.Vector.field(channels, dtype, shape=self.shape)  # dL/dm_i (eq 41)
 
 
 @ti.data_oriented
@@ -59,6 +61,7 @@ class State:
                  lanes=0):
         dt_ = real(cfg.dtype)
         T = cfg.steps
+        d = self.dim = cfg.dim
         self.n_particles = n_particles
         self.steps = T
         self.n_grid = cfg.n_grid
@@ -86,19 +89,20 @@ class State:
         # the Tape's derivative of the quotient) does not underflow to 0, still far below f32's resolution
         self.m_eps = (1e-20 if cfg.dtype == "f64" else 1e-12) * cfg.m_p
         g = needs_grad
-        N, n = n_particles, cfg.n_grid
-        self.x = ti.Vector.field(2, dt_, shape=(T + 1, N), needs_grad=g)  # position x_p^n
-        self.v = ti.Vector.field(2, dt_, shape=(T + 1, N), needs_grad=g)  # velocity v_p^n
-        self.C = ti.Matrix.field(2, 2, dt_, shape=(T + 1, N), needs_grad=g)  # affine velocity C_p^n (eq 19)
-        self.F = ti.Matrix.field(2, 2, dt_, shape=(T + 1, N), needs_grad=g)  # deformation gradient F_p^n
-        self.F_pc = ti.Matrix.field(2, 2, dt_, shape=(self.n_controls, N), needs_grad=g)  # control F_pc (eq 8)
+        N = n_particles
+        grid = self.grid_shape = (cfg.n_grid,) * d  # n_grid^dim nodes
+        self.x = ti.Vector.field(d, dt_, shape=(T + 1, N), needs_grad=g)  # position x_p^n
+        self.v = ti.Vector.field(d, dt_, shape=(T + 1, N), needs_grad=g)  # velocity v_p^n
+        self.C = ti.Matrix.field(d, d, dt_, shape=(T + 1, N), needs_grad=g)  # affine velocity C_p^n (eq 19)
+        self.F = ti.Matrix.field(d, d, dt_, shape=(T + 1, N), needs_grad=g)  # deformation gradient F_p^n
+        self.F_pc = ti.Matrix.field(d, d, dt_, shape=(self.n_controls, N), needs_grad=g)  # control F_pc (eq 8)
         # grid state of steps 0..T-1 (step T has no grid update)
-        self.grid_m = ti.field(dt_, shape=(T, n, n), needs_grad=g)  # node mass m_i^n (eq 15)
-        self.grid_p = ti.Vector.field(2, dt_, shape=(T, n, n), needs_grad=g)  # node momentum p_i^n (eq 16)
-        self.grid_v = ti.Vector.field(2, dt_, shape=(T, n, n), needs_grad=g)  # node velocity v_i^n (eq 17)
+        self.grid_m = ti.field(dt_, shape=(T,) + grid, needs_grad=g)  # node mass m_i^n (eq 15)
+        self.grid_p = ti.Vector.field(d, dt_, shape=(T,) + grid, needs_grad=g)  # node momentum p_i^n (eq 16)
+        self.grid_v = ti.Vector.field(d, dt_, shape=(T,) + grid, needs_grad=g)  # node velocity v_i^n (eq 17)
         if lanes:
-            self.lane_m = ti.field(dt_, shape=(lanes, n, n))  # private node mass of one thread
-            self.lane_p = ti.Vector.field(2, dt_, shape=(lanes, n, n))  # private node momentum of one thread
+            self.lane_m = ti.field(dt_, shape=(lanes,) + grid)  # private node mass of one thread
+            self.lane_p = ti.Vector.field(d, dt_, shape=(lanes,) + grid)  # private node momentum of one thread
         self.loss = ti.field(dt_, shape=(), needs_grad=g)
         self.fault = ti.field(ti.i64, shape=2)  # least faulty f * N + p per FAULT_* kind
         self.has_colors = colors
@@ -106,9 +110,9 @@ class State:
             self.color = ti.Vector.field(3, dt_, shape=N)  # particle RGB c_p (eq 12)
         self.has_position_loss = position_loss
         if position_loss:
-            self.target_x = ti.Vector.field(2, dt_, shape=N)  # x_pu of eq 10
+            self.target_x = ti.Vector.field(d, dt_, shape=N)  # x_pu of eq 10
         self.loss_grids = [
-            LossGrid(dt_, lg.kind, lg.res, lg.weight, lg.alpha is not None, needs_grad=g, needs_adjoint=not g,
+            LossGrid(dt_, d, lg.kind, lg.res, lg.weight, lg.alpha is not None, needs_grad=g, needs_adjoint=not g,
                      blur=lg.blur, reach=lg.reach, tol=lg.tol)
             for lg in loss_grids
         ]
@@ -139,10 +143,10 @@ def upload_loss(s, loss):
 def write_step(s: ti.template(), f: ti.i32, x: ti.types.ndarray(), v: ti.types.ndarray(),
                C: ti.types.ndarray(), F: ti.types.ndarray()):
     for p in range(s.n_particles):
-        for d in ti.static(range(2)):
+        for d in ti.static(range(s.dim)):
             s.x[f, p][d] = x[p, d]
             s.v[f, p][d] = v[p, d]
-            for e in ti.static(range(2)):
+            for e in ti.static(range(s.dim)):
                 s.C[f, p][d, e] = C[p, d, e]
                 s.F[f, p][d, e] = F[p, d, e]
 
@@ -151,7 +155,7 @@ def write_step(s: ti.template(), f: ti.i32, x: ti.types.ndarray(), v: ti.types.n
 def write_x(s: ti.template(), f: ti.i32, x: ti.types.ndarray()):
     """Replace the positions of step f alone."""
     for p in range(s.n_particles):
-        for d in ti.static(range(2)):
+        for d in ti.static(range(s.dim)):
             s.x[f, p][d] = x[p, d]
 
 
@@ -159,9 +163,9 @@ def write_x(s: ti.template(), f: ti.i32, x: ti.types.ndarray()):
 def read_step(s: ti.template(), f: ti.i32, x: ti.types.ndarray(), v: ti.types.ndarray(),
               C: ti.types.ndarray(), F: ti.types.ndarray()):
     for p in range(s.n_particles):
-        for d in ti.static(range(2)):
+        for d in ti.static(range(s.dim)):
             x[p, d] = s.x[f, p][d]
             v[p, d] = s.v[f, p][d]
-            for e in ti.static(range(2)):
+            for e in ti.static(range(s.dim)):
                 C[p, d, e] = s.C[f, p][d, e]
                 F[p, d, e] = s.F[f, p][d, e]

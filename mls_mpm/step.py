@@ -12,41 +12,41 @@ from .transfer import check_particle, g2p_particle, p2g_particle
 
 
 @ti.func
-def clear_node(s: ti.template(), f, i, j):
-    s.grid_m[f, i, j] = 0.0
-    s.grid_p[f, i, j] = ti.Vector.zero(float, 2)
+def clear_node(s: ti.template(), f, I):
+    s.grid_m[f, I] = 0.0
+    s.grid_p[f, I] = ti.Vector.zero(float, s.dim)
 
 
 @ti.kernel
 def clear_grid(s: ti.template(), f: ti.i32):
     """Zero grid f before the first step of a forward pass."""
-    for i, j in ti.ndrange(s.n_grid, s.n_grid):
-        clear_node(s, f, i, j)
+    for I in ti.grouped(ti.ndrange(*s.grid_shape)):
+        clear_node(s, f, I)
 
 
 @ti.func
-def gather_lanes(s: ti.template(), f, i, j):
+def gather_lanes(s: ti.template(), f, I):
     """grid f = the sum of the threads' private grids, which are zeroed for the next step."""
     m = 0.0
-    mom = ti.Vector.zero(float, 2)
+    mom = ti.Vector.zero(float, s.dim)
     for lane in ti.static(range(s.lanes)):
-        m += s.lane_m[lane, i, j]
-        mom += s.lane_p[lane, i, j]
-        s.lane_m[lane, i, j] = 0.0
-        s.lane_p[lane, i, j] = ti.Vector.zero(float, 2)
-    s.grid_m[f, i, j] = m
-    s.grid_p[f, i, j] = mom
+        m += s.lane_m[lane, I]
+        mom += s.lane_p[lane, I]
+        s.lane_m[lane, I] = 0.0
+        s.lane_p[lane, I] = ti.Vector.zero(float, s.dim)
+    s.grid_m[f, I] = m
+    s.grid_p[f, I] = mom
 
 
 @ti.func
-def grid_node(s: ti.template(), f, i, j):
-    """Grid operations of node (i, j); then grid f + 1 is made ready for the next step's scatter."""
+def grid_node(s: ti.template(), f, I):
+    """Grid operations of node I; then grid f + 1 is made ready for the next step's scatter."""
     if ti.static(s.lanes > 0):
-        gather_lanes(s, f, i, j)
-    grid_op_node(s, f, i, j)
+        gather_lanes(s, f, I)
+    grid_op_node(s, f, I)
     if ti.static(s.lanes == 0):
         if f + 1 < s.steps:
-            clear_node(s, f + 1, i, j)
+            clear_node(s, f + 1, I)
 
 
 @ti.func
@@ -67,8 +67,8 @@ def step_loops(s: ti.template(), f):
         for p in range(s.n_particles):
             check_particle(s, f, p)
             p2g_particle(s, f, p, 0)
-    for i, j in ti.ndrange(s.n_grid, s.n_grid):
-        grid_node(s, f, i, j)
+    for I in ti.grouped(ti.ndrange(*s.grid_shape)):
+        grid_node(s, f, I)
     for p in range(s.n_particles):
         g2p_particle(s, f, p)
 

@@ -4,7 +4,7 @@ A particle whose stencil leaves the grid is skipped (never indexed outside it) a
 """
 import taichi as ti
 
-from .kernels import inside, stencil, weights
+from .kernels import inside, node_N, offsets, stencil, weights
 from .material import stress
 from .state import FAULT_LEFT_GRID, FAULT_NON_FINITE
 
@@ -36,28 +36,28 @@ def affine_momentum(s: ti.template(), f, p, Fs):
 
 
 @ti.func
-def scatter_node(s: ti.template(), f, lane, i, j, dm, dp):
-    """m_i += dm, p_i += dp on grid f, or on this thread's private grid `lane` (plain adds, no atomics)."""
+def scatter_node(s: ti.template(), f, lane, I, dm, dp):
+    """m_i += dm, p_i += dp at node I of grid f, or of this thread's private grid `lane` (plain adds, no atomics)."""
     if ti.static(s.lanes > 0):
-        s.lane_m[lane, i, j] = s.lane_m[lane, i, j] + dm
-        s.lane_p[lane, i, j] = s.lane_p[lane, i, j] + dp
+        s.lane_m[lane, I] = s.lane_m[lane, I] + dm
+        s.lane_p[lane, I] = s.lane_p[lane, I] + dp
     else:
-        s.grid_m[f, i, j] += dm
-        s.grid_p[f, i, j] += dp
+        s.grid_m[f, I] += dm
+        s.grid_p[f, I] += dp
 
 
 @ti.func
 def p2g_particle(s: ti.template(), f, p, lane):
-    """Scatter particle p of step f: m_i += N m_p (eq 15), p_i += N [m_p v_p (1 - dt gamma) + G_p dpos] (eq 16)."""
+    """Scatter particle p of step f onto its 4^dim nodes: m_i += N m_p (eq 15), p_i += N [m_p v_p (1 - dt gamma) + G_p dpos] (eq 16)."""
     base, fx = stencil(s.x[f, p], s.inv_dx)
     if inside(base, s.n_grid):
         w, _ = weights(fx)
         G = affine_momentum(s, f, p, control_sum(s, f, p))
         mv = s.m_p * (1.0 - s.dt * s.gamma) * s.v[f, p]
-        for i, j in ti.static(ti.ndrange(4, 4)):
-            N = w[i, 0] * w[j, 1]
-            dpos = (ti.Vector([i, j]) - fx) * s.dx  # x_i - x_p
-            scatter_node(s, f, lane, base[0] + i, base[1] + j, N * s.m_p, N * (mv + G @ dpos))
+        for o in ti.static(offsets(s.dim)):
+            N = node_N(w, o)
+            dpos = (o - fx) * s.dx  # x_i - x_p
+            scatter_node(s, f, lane, base + o, N * s.m_p, N * (mv + G @ dpos))
 
 
 @ti.func
@@ -67,15 +67,15 @@ def g2p_particle(s: ti.template(), f, p):
     base, fx = stencil(x, s.inv_dx)
     if inside(base, s.n_grid):
         w, _ = weights(fx)
-        v_new = ti.Vector.zero(float, 2)
-        C_new = ti.Matrix.zero(float, 2, 2)
-        for i, j in ti.static(ti.ndrange(4, 4)):
-            N = w[i, 0] * w[j, 1]
-            dpos = (ti.Vector([i, j]) - fx) * s.dx
-            v_i = s.grid_v[f, base[0] + i, base[1] + j]
+        v_new = ti.Vector.zero(float, s.dim)
+        C_new = ti.Matrix.zero(float, s.dim, s.dim)
+        for o in ti.static(offsets(s.dim)):
+            N = node_N(w, o)
+            dpos = (o - fx) * s.dx
+            v_i = s.grid_v[f, base + o]
             v_new += N * v_i  # eq 18
             C_new += 3.0 * s.inv_dx * s.inv_dx * N * v_i.outer_product(dpos)  # eq 19
-        F_new = (ti.Matrix.identity(float, 2) + s.dt * C_new) @ control_sum(s, f, p)  # eq 20
+        F_new = (ti.Matrix.identity(float, s.dim) + s.dt * C_new) @ control_sum(s, f, p)  # eq 20
         x_new = x + s.dt * v_new  # eq 21
         s.v[f + 1, p] = v_new
         s.C[f + 1, p] = C_new
