@@ -12,6 +12,8 @@ TWINS = {
     "transfer": {
         "p2g_particle": "eq 54-65, 71",
         "g2p_particle": "eq 47-48, 57, 66-69",
+        "p2g_slab": "eq 59-65 on one slab of the stencil (inside p2g_particle_reverse)",
+        "g2p_slab": "eq 48, 66-69 on one slab of the stencil (inside g2p_particle_reverse)",
         "p2g": "eq 54-65, 71",
         "g2p": "eq 47-48, 57, 66-69",
         "check_particle": "a non-finite adjoint (no equation)",

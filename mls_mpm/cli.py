@@ -148,10 +148,12 @@ def build_parser():
                                      "table to this file (its folder must exist); quality: output folder "
                                      "(default: renders/bench_quality/)")
     bench.add_argument("--quick", action="store_true",
-                       help="gradient: 40 steps; tradeoff: fewer rows and iterations (under 10 minutes); quality: "
+                       help="gradient: 40 steps (3D: 10); tradeoff: fewer rows and iterations (under 10 minutes); quality: "
                             "3 pairs at --quality fast")
     bench.add_argument("--arch", choices=["cpu", "gpu", "cuda", "vulkan"], default="cpu",
                        help="gradient: the Taichi backend measured")
+    bench.add_argument("--dim", type=int, choices=[2, 3], default=None,
+                       help="gradient: only the cases of this dimension (default: the 2D and the 3D cases)")
     bench.add_argument("--max-seconds", type=float, default=None,
                        help="tradeoff: wall-time budget of one row; a row over it is stopped and marked (default: "
                             "no limit)")
@@ -303,6 +305,8 @@ def cmd_bench(args):
         raise BenchError(f"bench {args.what}: SCENE {args.scene}: a scene applies to bench tradeoff only; drop it")
     if args.arch != "cpu" and args.what != "gradient":
         raise BenchError(f"bench {args.what}: --arch applies to bench gradient only; drop it")
+    if args.dim is not None and args.what != "gradient":
+        raise BenchError(f"bench {args.what}: --dim applies to bench gradient only; drop it")
     if args.max_seconds is not None and (args.what != "tradeoff" or not 0 < args.max_seconds < math.inf):
         raise BenchError(f"bench {args.what}: --max-seconds {args.max_seconds:g}: expected seconds > 0, with bench "
                          "tradeoff only")
@@ -325,7 +329,7 @@ def cmd_bench(args):
     if args.what == "gradient":
         from .bench import bench_gradient
 
-        bench_gradient(quick=args.quick, arch=args.arch, out=args.out)
+        bench_gradient(quick=args.quick, arch=args.arch, out=args.out, dims=(2, 3) if args.dim is None else (args.dim,))
         return 0
     if args.what == "scaling":
         from .bench import bench_scaling
