@@ -55,7 +55,7 @@ ROTATION_EPS = 1e-20
 # far above float64 round-off (1e-16) and far below any F a simulation reaches except through exact degeneracy.
 POLAR_EPS = 1e-10
 
-JACOBI_SWEEPS = 4  # cyclic sweeps of the 3x3 Jacobi eigen-solver: a start good to ~1e-8 or better
+JACOBI_SWEEPS = 3  # cyclic sweeps of the 3x3 Jacobi eigen-solver: a start good to ~1e-8 or better
 NEWTON_STEPS = 2  # quadratic: a start within 1e-4 ends at round-off
 
 
@@ -84,7 +84,9 @@ def cayley(w):
 
 # The starting guess below is branch-free (ti.select), so that ti.ad.Tape differentiates it quickly; its
 # derivative does not matter (the Newton steps of polar_rotation remove it), only that it stays finite.
-JACOBI_TINY = 1e-30  # added under square roots: finite derivatives where a pair is already diagonal
+# A pair whose |d| and |C_pq| are below JACOBI_EPS tr(C) is rotated only partly (those eigenvectors are nearly
+# degenerate and do not change R): keeps the Jacobi derivative bounded, which the Newton steps then remove.
+JACOBI_EPS = 1e-8
 
 
 @ti.func
@@ -96,7 +98,8 @@ def jacobi_rotate(C, V, p: ti.template(), q: ti.template()):
     """
     o = C[p, q]
     d = C[q, q] - C[p, p]
-    t = 2.0 * o / (ti.abs(d) + ti.sqrt(d * d + 4.0 * o * o + JACOBI_TINY))  # guard: JACOBI_TINY, 0/0 at o = d = 0
+    tiny = (JACOBI_EPS * C.trace()) ** 2  # guard: 0 / 0 at o = d = 0, and bounded derivatives near it
+    t = 2.0 * o / (ti.abs(d) + ti.sqrt(d * d + 4.0 * o * o + tiny))
     t = ti.select(d < 0.0, -t, t)
     c = 1.0 / ti.sqrt(1.0 + t * t)
     s = t * c
