@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import taichi as ti
 
-from adjoint.material import stress_reverse
 from conftest import rel_err
 from mls_mpm.material import polar_rotation, stress
+from test_adjoint_kernels import stress_adjoint, stress_functional  # dimension-generic (template fields)
 
 pytestmark = pytest.mark.usefixtures("taichi_f64_module")
 
@@ -68,18 +68,6 @@ def rotation_kernel(Fs: ti.template(), out: ti.template()):
 def stress_kernel(Fs: ti.template(), out: ti.template(), mu: ti.f64, lam: ti.f64):
     for q in Fs:
         out[q] = stress(Fs[q], mu, lam)
-
-
-@ti.kernel
-def stress_functional(Fs: ti.template(), W: ti.template(), loss: ti.template(), mu: ti.f64, lam: ti.f64):
-    for q in Fs:
-        loss[None] += (W[q] * stress(Fs[q], mu, lam)).sum()
-
-
-@ti.kernel
-def stress_adjoint(Fs: ti.template(), W: ti.template(), out: ti.template(), mu: ti.f64, lam: ti.f64):
-    for q in Fs:
-        out[q] = stress_reverse(Fs[q], W[q], mu, lam)
 
 
 def matrices(n):
