@@ -29,6 +29,9 @@ PLY_RE = re.compile(r"^frame_(\d{5,})\.ply$")
 PARTICLES_DIR = "particles"
 MESHES_DIR = "meshes"
 ISO_LEVEL = 0.5  # the mesh's level of m(x) / (density * dx^3)
+# The 3D preview's modes (render3d.py), named here, in a module without Taichi, so that the command line lists
+# them without loading Taichi; the 2D modes are scene_keys.RENDER_MODES.
+MODES_3D = ("surface", "volume", "particles")
 
 
 def colors_u8(colors):
