@@ -104,3 +104,60 @@ def test_the_target_silhouette_is_outlined_in_black():
     assert (np.abs(dist[inked] - pixel_radius(0.2)) < pixel_radius(0.6 * DX)).all()  # the ball's level-1/2 silhouette
     assert np.count_nonzero(inked) > 2 * np.pi * pixel_radius(0.2)  # all around the circle
     assert img.min() < 60 and (img[inked][:, 0] == img[inked][:, 1]).all()  # black (grey where partly covered)
+
+
+# -- a whole 3D render (render_run) of a positions-method result, which needs no simulation ----------------------
+
+def fake_3d_result(n_particles_axis=2):
+    """(meta, arrays) of a 3D result of the positions method (frames: the sampled ball, then final_x, a shifted
+    ball), as load_result returns them."""
+    from mls_mpm.field3d import splat
+
+    x, m_p = ball(radius=0.2, k=n_particles_axis)
+    N = len(x)
+    sim = dict(dim=3, n_grid=N_GRID, steps=10, dt=1e-3, E=100.0, nu=0.3, density=DENSITY, gamma=0.0,
+               gravity=[0.0, 0.0, 0.0], boundary="slip", bound=3, particles_per_cell=n_particles_axis ** 3,
+               dtype="f64", arch="cpu")
+    settings = dict(scene=dict(name="ball3d", target_density="match"), sim=sim, control=dict(stride=5),
+                    loss=dict(kind="mass"), render=dict(mode="mass", size=64, every=5, gif=True, outline=True))
+    target = x + [0.1, 0.0, 0.0]
+    arrays = dict(controls=np.zeros((1, 2, N, 3, 3)), colors=np.tile([0.9, 0.6, 0.1], (N, 1)), init_x=x[None],
+                  init_v=np.zeros((1, N, 3)), init_C=np.zeros((1, N, 3, 3)), init_F=np.tile(np.eye(3), (1, N, 1, 1)),
+                  target_grid=splat(target, m_p, N_GRID)[0], final_x=target, losses=np.array([1.0, 0.5]),
+                  round_lengths=np.array([2]), target_points=target, target_colors=np.tile([0.2, 0.2, 0.9], (N, 1)))
+    return dict(settings=settings, method="positions"), arrays
+
+
+def test_a_3d_run_renders_frames_particles_meshes_and_videos(tmp_path, monkeypatch):
+    from mls_mpm import render_run as rr
+    from mls_mpm.export3d import read_ply
+    from mls_mpm.frames import frame_paths
+    from mls_mpm.video import read_mp4
+    from PIL import Image
+
+    meta, arrays = fake_3d_result()
+    monkeypatch.setattr(rr, "load_result", lambda out: (meta, arrays))
+    lines = []
+    paths = rr.render_run(tmp_path, emit=lines.append)
+    assert [p.name for p in paths] == ["frame_00000.png", "frame_00001.png"]
+    for folder in ("particles", "meshes"):
+        assert sorted(p.name for p in (tmp_path / folder).iterdir()) == ["frame_00000.ply", "frame_00001.ply"]
+        assert not (tmp_path / f"{folder}.new").exists() and not (tmp_path / f"{folder}.old").exists()
+    first = read_ply(tmp_path / "particles" / "frame_00000.ply")["vertex"]
+    np.testing.assert_array_equal(np.stack([first["x"], first["y"], first["z"]], 1),
+                                  arrays["init_x"][0].astype(np.float32))
+    last = read_ply(tmp_path / "particles" / "frame_00001.ply")["vertex"]
+    np.testing.assert_array_equal(last["x"], arrays["final_x"][:, 0].astype(np.float32))
+    assert (last["red"] == 230).all() and np.median(last["density"]) == pytest.approx(DENSITY, rel=0.3)
+    mesh = read_ply(tmp_path / "meshes" / "frame_00001.ply")
+    v = np.stack([mesh["vertex"]["x"], mesh["vertex"]["y"], mesh["vertex"]["z"]], 1)
+    assert len(mesh["face"]) > 50 and np.abs(v.mean(axis=0) - [0.6, 0.5, 0.5]).max() < 0.02  # the moved ball
+    frame = np.asarray(Image.open(paths[0]))
+    assert frame.shape == (64, 64, 3) and frame[32, 32, 0] > frame[32, 32, 1] + 40  # the ball, red (at rest)
+    assert read_mp4(tmp_path / "animation.mp4") == (2, (64, 64))
+    for name in ("animation.gif", "sheet.png", "loss.png"):
+        assert (tmp_path / name).is_file()
+    assert lines[1].startswith(f"wrote 2 frames to {tmp_path / 'frames'} and as many to")
+    assert lines[2].startswith("per frame: simulation ") and " mesh " in lines[2]
+    with pytest.raises(rr.RenderError, match=r"^--mode mass: expected one of surface, volume, particles \(a 3D run\)"):
+        rr.render_run(tmp_path, mode="mass", emit=lines.append)
