@@ -131,7 +131,7 @@ def build_parser():
 
     render = sub.add_parser("render", formatter_class=fmt, help="re-render a finished run from its result.npz")
     render.add_argument("dir", help="output folder of a finished run")
-    render.add_argument("--mode", choices=RENDER_MODES + MODES_3D,
+    render.add_argument("--mode", choices=RENDER_MODES + tuple(m for m in MODES_3D if m not in RENDER_MODES),
                         help=f"2D runs: {'|'.join(RENDER_MODES)}; 3D runs: {'|'.join(MODES_3D)} "
                              "(default: the scene's render.mode; mass or color mean surface in 3D)")
     render.add_argument("--size", type=integer(RENDER_SIZE_MIN, RENDER_SIZE_MAX, " pixels"),

@@ -23,7 +23,7 @@ from PIL import Image
 from . import memory, runtime
 from .errors import Interrupted, UserError
 from .export3d import MESHES_DIR, MODES_3D, PARTICLES_DIR, PLY_NAME, PLY_RE, surface, write_mesh, write_particles
-from .field3d import mass_field
+from .field3d import frame_field, mass_field
 from .frames import (FRAME_RE, FRAMES_DIR, NEW_DIR, FrameWriter, discard_new, frame_paths, loss_plot, on_white,
                      recover, remove_stale_temps, save_png, sheet, swap_in, write_gif)
 from .problem import rest_node_mass
@@ -141,9 +141,9 @@ def _render_3d(out, preview, cfg, meta, arrays, every, outline, should_stop, tim
         if should_stop is not None and should_stop():
             raise Interrupted("rendering interrupted; the old frames are kept")
         x = state["x"]
-        field = timed("field", mass_field, x, cfg.m_p, cfg.n_grid, cfg.density, colors)
+        field, density = timed("field", frame_field, x, cfg.m_p, cfg.n_grid, cfg.density, colors)
         timed("preview", lambda: frames.write(preview.render(field, x, colors, target)))
-        timed("particles", lambda: particles.write((x, colors, field.density_at(x))))
+        timed("particles", lambda: particles.write((x, colors, density)))
         timed("mesh", lambda: meshes.write(surface(field)))
 
 

@@ -27,6 +27,9 @@ def _padded(im, size):
     """An RGB frame as uint8 (H, W, 3), padded with white on the right and bottom to size (width, height)."""
     rgb = np.asarray(on_white(im))
     W, H = size
+    if rgb.shape[0] > H or rgb.shape[1] > W:
+        raise ValueError(f"{im.filename}: {rgb.shape[1]} x {rgb.shape[0]} pixels, larger than the first frame's "
+                         f"{W} x {H}")
     if rgb.shape[:2] == (H, W):
         return np.ascontiguousarray(rgb)
     out = np.full((H, W, 3), 255, np.uint8)
