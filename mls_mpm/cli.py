@@ -89,6 +89,7 @@ def run_options(parser, what, command):
 
 
 def build_parser():
+    from .export3d import MODES_3D
     from .scene import RENDER_MODES, RENDER_SIZE_MAX, RENDER_SIZE_MIN
 
     fmt = argparse.ArgumentDefaultsHelpFormatter
@@ -130,7 +131,9 @@ def build_parser():
 
     render = sub.add_parser("render", formatter_class=fmt, help="re-render a finished run from its result.npz")
     render.add_argument("dir", help="output folder of a finished run")
-    render.add_argument("--mode", choices=RENDER_MODES, help="default: the scene's render.mode")
+    render.add_argument("--mode", choices=RENDER_MODES + tuple(m for m in MODES_3D if m not in RENDER_MODES),
+                        help=f"2D runs: {'|'.join(RENDER_MODES)}; 3D runs: {'|'.join(MODES_3D)} "
+                             "(default: the scene's render.mode; mass or color mean surface in 3D)")
     render.add_argument("--size", type=integer(RENDER_SIZE_MIN, RENDER_SIZE_MAX, " pixels"),
                         help=f"image size in pixels, {RENDER_SIZE_MIN} to {RENDER_SIZE_MAX} (default: render.size)")
     render.add_argument("--every", type=integer(1), help="a frame every K >= 1 steps (default: render.every)")
