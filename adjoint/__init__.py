@@ -25,6 +25,7 @@ TWINS = {
     },
     "material": {
         "stress": "eq 57 (second term)",
+        "rotated_stress": "eq 57 (second term), R given",
     },
     "losses": {
         "splat": "eq 42-43",

@@ -21,7 +21,7 @@ def cofactor_adjoint(F, adj_cof):
 
 
 @ti.func
-def rotation_adjoint(F, adj_P, mu):
+def rotation_adjoint(F, R, adj_P, mu):
     """dL/dF through R(F) in the term -2 mu R of P (eq 9; eq 57, second term), adj_R = -2 mu adj_P.
 
     2D: R(theta), theta = atan2(b, a) with a = F00 + F11, b = F10 - F01, so
@@ -35,8 +35,7 @@ def rotation_adjoint(F, adj_P, mu):
     singular (two singular values sum to zero: R is not unique) rotation_solve returns 0 and, as in 2D, the
     rotation term's derivative is taken as zero.
     """
-    R = polar_rotation(F)
-    adj_F = 0.0 * F
+    adj_F = 0.0 * F  # R = polar_rotation(F), computed by the caller
     if ti.static(F.n == 2):
         a = F[0, 0] + F[1, 1]
         b = F[1, 0] - F[0, 1]
@@ -61,6 +60,12 @@ def rotation_adjoint(F, adj_P, mu):
 
 @ti.func
 def stress_reverse(F, adj_P, mu, lam):
+    """Return dL/dF given adj_P = dL/dP for P(F) of eq 9 (rotated_stress_reverse with R = polar_rotation(F))."""
+    return rotated_stress_reverse(F, polar_rotation(F), adj_P, mu, lam)
+
+
+@ti.func
+def rotated_stress_reverse(F, R, adj_P, mu, lam):
     """Return dL/dF given adj_P = dL/dP for P = 2 mu (F - R) + lambda (J - 1) cof(F) (eq 9; eq 57, second term).
 
     Rotation: rotation_adjoint (2D through the polar angle, 3D through dR = R [omega]_x).
@@ -70,5 +75,5 @@ def stress_reverse(F, adj_P, mu, lam):
     cF = cofactor(F)
     J = F.determinant()
     adj_F = 2.0 * mu * adj_P + lam * (cF * adj_P).sum() * cF + lam * (J - 1.0) * cofactor_adjoint(F, adj_P)
-    adj_F += rotation_adjoint(F, adj_P, mu)
+    adj_F += rotation_adjoint(F, R, adj_P, mu)
     return adj_F

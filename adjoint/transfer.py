@@ -3,10 +3,10 @@ import taichi as ti
 
 from mls_mpm.config import STENCIL
 from mls_mpm.kernels import inside, join, node_weight, slab_offsets, stencil, weights
-from mls_mpm.material import stress
+from mls_mpm.material import polar_rotation, rotated_stress
 from mls_mpm.transfer import affine_momentum, control_sum
 
-from .material import stress_reverse
+from .material import rotated_stress_reverse
 
 
 @ti.func
@@ -91,7 +91,9 @@ def p2g_particle_reverse(s: ti.template(), a: ti.template(), f, p):
         dst = f % 2
         w, dw = weights(fx)
         Fs = control_sum(s, f, p)
-        G = affine_momentum(s, f, p, Fs)
+        R = polar_rotation(Fs)  # once: the stress, G and the stress's reverse all need it
+        P = rotated_stress(Fs, R, s.mu, s.lam)
+        G = affine_momentum(s, f, p, Fs, P)
         drag = s.m_p * (1.0 - s.dt * s.gamma)
         mv = drag * s.v[f, p]
         adj_x = ti.Vector.zero(float, s.dim)
@@ -106,8 +108,7 @@ def p2g_particle_reverse(s: ti.template(), a: ti.template(), f, p):
         adj_x -= G.transpose() @ sum_adj_p
         adj_v = drag * sum_adj_p
         adj_A = -3.0 * s.inv_dx * s.inv_dx * s.dt * s.vol * adj_G
-        P = stress(Fs, s.mu, s.lam)
-        adj_Fs = adj_A.transpose() @ P + stress_reverse(Fs, adj_A @ Fs, s.mu, s.lam)
+        adj_Fs = adj_A.transpose() @ P + rotated_stress_reverse(Fs, R, adj_A @ Fs, s.mu, s.lam)
         a.adj_x[dst, p] += adj_x
         a.adj_v[dst, p] += adj_v
         a.adj_C[dst, p] += s.m_p * adj_G

@@ -190,6 +190,12 @@ def polar_rotation(F):
 @ti.func
 def stress(F, mu, lam):
     """First Piola-Kirchhoff stress P(F) = 2 mu (F - R) + lambda (J - 1) J F^{-T} (eq 9, 14)."""
-    R = polar_rotation(F)
+    return rotated_stress(F, polar_rotation(F), mu, lam)
+
+
+@ti.func
+def rotated_stress(F, R, mu, lam):
+    """P(F) of eq 9 given R = polar_rotation(F), for a caller that needs R again (the reverse P2G: in 3D the polar
+    decomposition is the costliest part of the kernel, to run and to compile)."""
     J = F.determinant()
     return 2.0 * mu * (F - R) + lam * (J - 1.0) * cofactor(F)

@@ -30,9 +30,8 @@ def control_sum(s: ti.template(), f, p):
 
 
 @ti.func
-def affine_momentum(s: ti.template(), f, p, Fs):
-    """G_p^n = -3/dx^2 dt V_p^0 P(F + F_pc) (F + F_pc)^T + m_p C_p^n (eq 61)."""
-    P = stress(Fs, s.mu, s.lam)
+def affine_momentum(s: ti.template(), f, p, Fs, P):
+    """G_p^n = -3/dx^2 dt V_p^0 P(F + F_pc) (F + F_pc)^T + m_p C_p^n (eq 61), given P = P(F + F_pc)."""
     return -3.0 * s.inv_dx * s.inv_dx * s.dt * s.vol * P @ Fs.transpose() + s.m_p * s.C[f, p]
 
 
@@ -58,7 +57,8 @@ def p2g_particle(s: ti.template(), f, p, lane):
     base, fx = stencil(s.x[f, p], s.inv_dx)
     if inside(base, s.n_grid):
         w, _ = weights(fx)
-        G = affine_momentum(s, f, p, control_sum(s, f, p))
+        Fs = control_sum(s, f, p)
+        G = affine_momentum(s, f, p, Fs, stress(Fs, s.mu, s.lam))
         mv = s.m_p * (1.0 - s.dt * s.gamma) * s.v[f, p]
         if ti.static(s.dim == 2):  # the stencil's outer loop: see kernels.slab_offsets
             for i0 in ti.static(range(STENCIL)):

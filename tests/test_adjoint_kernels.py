@@ -486,7 +486,8 @@ def stress_cases():
 
 
 def test_stress_reverse_matches_tape():
-    """stress_reverse(F, G) = dP/dF : G (eq 57, second term) vs Tape through stress (eq 9): rel err <= 1e-8.
+    """stress_reverse(F, G) = dP/dF : G (eq 57, second term; rotated_stress_reverse with R = polar_rotation(F)) vs
+    Tape through stress (eq 9): rel err <= 1e-8.
 
     Per case: identity, a I, a rotation, shear, nearly singular and rank-one F, J < 0; G random.
     At F = I also against the closed form 2 mu sym(G) + lam tr(G) I, rel err <= 1e-14.

@@ -304,13 +304,18 @@ def test_nan_control_raises(free_sim):
     (dict(particles_per_cell=10 ** 30), "particles_per_cell"),
     (dict(threads=10 ** 30), "threads"),
     (dict(threads=-1), "threads"),
+    (dict(dim=4), "dim"),
+    (dict(dim=True), "dim"),
+    (dict(dim=3, gravity=(0.0, -9.8)), "gravity"),
+    (dict(gravity=(0.0, -9.8, 0.0)), "gravity"),
+    (dict(gravity="down"), "gravity"),
 ])
 def test_config_rejects_bad_values(change, name):
     """SimConfig refuses values the simulator cannot use, with a ConfigError naming the setting:
     steps = 0, dt <= 0 or NaN, nu outside [0, 0.5), gamma dt >= 1 (eq 16's factor 1 - dt gamma would flip sign),
     stride > steps, n_grid below config.min_n_grid(bound) (too few nodes inside the walls for a 4x4 stencil),
     particles_per_cell above MAX_PARTICLES_PER_CELL and threads above MAX_THREADS (10**30 would reach the
-    allocator or Taichi)."""
+    allocator or Taichi), a dim other than 2 or 3, gravity without one number per axis."""
     with pytest.raises(mls_mpm.ConfigError, match=f"^{name} = "):
         mls_mpm.SimConfig(**{**dict(n_grid=32, steps=30, dt=1e-3, E=100.0), **change})
 
@@ -369,3 +374,10 @@ def test_extruded_shape_matches_2d():
             assert err <= 1e-12, (f, err)
             assert np.abs(b["x"][mid, 2] - layers[middle]).max() <= 1e-14  # no motion along z in the middle
     assert errors[-1] > 1e-10, errors  # the ends have reached the middle by step 4
+
+
+def test_config_defaults_by_dimension():
+    """dim = 3 defaults gravity to (0, -9.8, 0) and V_p^0 to dx^3 / particles_per_cell; dim = 2 as before."""
+    c2, c3 = mls_mpm.SimConfig(n_grid=32), mls_mpm.SimConfig(dim=3, n_grid=32, particles_per_cell=8)
+    assert c2.gravity == (0.0, -9.8) and c3.gravity == (0.0, -9.8, 0.0)
+    assert c2.vol == (1 / 32) ** 2 / 4 and c3.vol == (1 / 32) ** 3 / 8
