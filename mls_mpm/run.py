@@ -30,7 +30,7 @@ from .images import splat_grid
 from .lock import folder_lock
 from .optimize import METHODS, PAIRS_MAX, STATE, OptimizeResult
 from .schedule import BUDGET_REASON, STAGE_STATE, Stage, staged
-from .result import STATE_KEYS, STATE_SHAPES
+from .result import STATE_KEYS, state_shapes
 from .simulator import Simulator
 
 __all__ = ["OutputError", "prepare_out", "fingerprint", "run_scene"]
@@ -63,8 +63,8 @@ def fingerprint(scene):
 
 
 def _initial_state(prob):
-    N = len(prob.x0)
-    return {"x": prob.x0, "v": np.zeros((N, 2)), "C": np.zeros((N, 2, 2)), "F": np.tile(np.eye(2), (N, 1, 1))}
+    N, d = prob.x0.shape
+    return {"x": prob.x0, "v": np.zeros((N, d)), "C": np.zeros((N, d, d)), "F": np.tile(np.eye(d), (N, 1, 1))}
 
 
 def run_scene(scene, out_dir, resume=False, emit=print, should_stop=None, render=True, files=None):
@@ -103,7 +103,9 @@ def _state_kinds(scene):
 
 def _run(scene, prob, sim, out, resume, emit, should_stop, render, t0):
     cfg, opt = scene.sim, scene.optimize
-    emit(f"{scene.name}: {len(prob.x0)} particles, {cfg.n_grid}^2 grid, {cfg.steps} steps, "
+    for note in prob.notes:
+        emit(note)
+    emit(f"{scene.name}: {len(prob.x0)} particles, {cfg.n_grid}^{cfg.dim} grid, {cfg.steps} steps, "
          f"{cfg.n_controls} control steps, loss {scene.loss.kind} on grids {list(scene.loss.grids)}, "
          f"optimizer {opt.method}, {opt.rounds} round(s), on {runtime.running_arch()}")
     _remove_temp_files(out, emit)
@@ -190,6 +192,7 @@ def _finish(scene, prob, sim, done, starts, out, wall, emit):
         "stop_reason": [r.reason for r in done],
         "wall_seconds": wall,
         "particles": len(prob.x0),
+        "dim": cfg.dim,
         "backend": runtime.running_arch(),  # what Taichi ran on: "cpu", "cuda" or "vulkan"
         "settings": scene.to_dict(),
     }
@@ -267,8 +270,8 @@ def _load_checkpoint(path, scene, prob):
         raise CheckpointError(f"{path}: made with other scene settings ({_differences(theirs, fingerprint(scene))}); "
                               "drop --resume to start over, or use the settings it was made with")
     opt = scene.optimize
-    K, N = scene.sim.n_controls, len(prob.x0)
-    controls = (K, N, 2, 2)
+    K, N, d = scene.sim.n_controls, len(prob.x0), scene.sim.dim
+    controls = (K, N, d, d)
     rounds = meta.get("rounds")
     if not isinstance(rounds, list) or len(rounds) > opt.rounds:
         raise CheckpointError(f"{path}: rounds is {json.dumps(rounds)[:40]}: expected a list of at most {opt.rounds} "
@@ -282,20 +285,20 @@ def _load_checkpoint(path, scene, prob):
         _require_losses(path, f"rounds[{i}].losses", r["losses"])
         positions = None
         if opt.method == "positions":
-            positions = check_array(path, arrays, f"round_positions_{i}", "f", (N, 2), what)
+            positions = check_array(path, arrays, f"round_positions_{i}", "f", (N, d), what)
         done.append(OptimizeResult(check_array(path, arrays, f"round_controls_{i}", "f", controls, what),
                                    r["losses"], r["iterations"], r["converged"], r["reason"], r["grad_norms"],
                                    positions))
     n_starts = min(len(done) + 1, opt.rounds)
     for k in STATE_KEYS:
-        check_array(path, arrays, f"start_{k}", "f", (n_starts, N, *STATE_SHAPES[k]), what)
+        check_array(path, arrays, f"start_{k}", "f", (n_starts, N, *state_shapes(d)[k]), what)
     starts = [{k: arrays[f"start_{k}"][i] for k in STATE_KEYS} for i in range(n_starts)]
     opt_state = None
     if "opt" in meta and len(done) < opt.rounds:
         st = check_value(path, "opt", meta["opt"], "table", what)
         opt_state = {"loss": check_value(path, "opt.loss", st.get("loss"), "float", what),
                      "controls": check_array(path, arrays, "opt_controls", "f", controls, what)}
-        shapes = {"like_controls": controls, "particles": (N, 2), "pairs": (None, K * N * 4)}
+        shapes = {"like_controls": controls, "particles": (N, d), "pairs": (None, K * N * d * d)}
         for key, kind in _state_kinds(scene).items():
             if kind in shapes:
                 opt_state[key] = check_array(path, arrays, f"opt_{key}", "f", shapes[kind], what)
