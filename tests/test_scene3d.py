@@ -205,3 +205,30 @@ def test_a_mesh_or_shape_in_a_2d_scene_is_refused(capsys, tmp_path):
 def test_a_load_error_names_the_scene_file(tmp_path):
     with pytest.raises(SceneError, match=r"s3\.toml: sim\.dim = 4: expected 2 or 3"):
         load_scene(write(tmp_path, BASE.replace("dim = 3", "dim = 4")))
+
+
+# ---- mls-mpm morph with two 3D shapes ------------------------------------------------------------------------
+
+def test_morph_chooses_a_3d_scene_for_two_shapes(tmp_path):
+    from mls_mpm import morph
+    ball = trimesh.creation.icosphere(subdivisions=3)
+    ball.export(tmp_path / "ball.stl")
+    choice = morph.choose(str(tmp_path / "ball.stl"), "shape:torus?R=0.3&r=0.1", "fast")
+    s = load_scene(write(tmp_path, choice.text, "scene.toml"))
+    assert (s.sim.dim, s.sim.n_grid, s.sim.particles_per_cell, s.sim.gravity) == (3, 24, 1, (0.0, 0.0, 0.0))
+    assert s.name == "morph_ball_to_torus" and s.initial == tmp_path / "ball.stl" and s.loss.kind == "ot"
+    assert len(s.target_shift) == 3 and 100 <= s.sim.steps <= 400
+    p = build(s)
+    assert p.x0.shape[1] == 3 and p.target_mass_grids[0].shape == (12, 12, 12)
+    # the target is moved onto the body's centre of mass
+    np.testing.assert_allclose(p.target_points.mean(axis=0), p.x0.mean(axis=0), atol=1e-3)
+
+
+@pytest.mark.parametrize("initial, pattern", [
+    ("shape:cone", r"INITIAL shape:cone: expected a 3D shape \(unknown built-in shape 'cone'"),
+    ("nope.obj", r"INITIAL nope\.obj: expected a 3D shape \(.*nope\.obj: no such mesh file\)$"),
+])
+def test_morph_refuses_bad_3d_input_in_one_line(capsys, tmp_path, initial, pattern):
+    import re
+    message = refused(capsys, tmp_path, "morph", initial, "shape:sphere", "--out", tmp_path / "m", "--no-render")
+    assert re.search(pattern, message), message
