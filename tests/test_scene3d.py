@@ -1,17 +1,17 @@
 """3D scenes (sim.dim = 3): keys and their defaults, problem.build's particles and (res,)^3 target grids, the
 shipped *_3d scenes, and every refusal of bad 3D input: one line, exit 2, nothing written. No simulation runs:
 each refusal comes before the simulator is built."""
-import os
 from pathlib import Path
 
 import numpy as np
 import pytest
 import trimesh
 
-from mls_mpm.cli import main
 from mls_mpm.losses import ColorLoss, MassLoss, OTLoss
 from mls_mpm.problem import build, iou, occupied, rest_node_mass
 from mls_mpm.scene import SceneError, load_scene
+
+from test_input_errors import refused  # mls-mpm ARGV in a folder: exit 2, one line, nothing written
 
 ROOT = Path(__file__).resolve().parents[1]
 IMAGES = ROOT / "scenes" / "images"
@@ -42,22 +42,6 @@ def write(folder, text, name="s3.toml"):
 
 def edit(text, section, line):
     return text.replace(f"[{section}]\n", f"[{section}]\n{line}\n", 1)
-
-
-def refused(capsys, folder, *argv):
-    """`mls-mpm argv` run in folder: exit 2, one line on stderr, nothing written; the message."""
-    before = sorted(Path(folder).rglob("*"))
-    cwd = os.getcwd()
-    os.chdir(folder)
-    try:
-        code = main([str(a) for a in argv])
-    finally:
-        os.chdir(cwd)
-    err = capsys.readouterr().err
-    assert code == 2, err
-    assert err.startswith("mls-mpm: error: ") and err.count("\n") == 1, err
-    assert sorted(Path(folder).rglob("*")) == before
-    return err[len("mls-mpm: error: "):].rstrip("\n")
 
 
 def test_3d_defaults(tmp_path):
