@@ -2,6 +2,7 @@
 mesh formats, the inside test against an analytic solid, extrusion, the 3D splat, and each refusal's line.
 No simulation: nothing here compiles a kernel."""
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -10,8 +11,6 @@ import trimesh
 from mls_mpm import shapes
 from mls_mpm.images import default_region, load_image, material, pixel_of, splat_grid
 from mls_mpm.meshes import MeshError, contains, load_mesh
-
-from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 LETTER_A = ROOT / "scenes" / "images" / "pairs" / "letter_A_target.png"
