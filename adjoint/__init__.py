@@ -12,6 +12,8 @@ TWINS = {
     "transfer": {
         "p2g_particle": "eq 54-65, 71",
         "g2p_particle": "eq 47-48, 57, 66-69",
+        "p2g_slab": "eq 59-65 on one slab of the stencil (inside p2g_particle_reverse)",
+        "g2p_slab": "eq 48, 66-69 on one slab of the stencil (inside g2p_particle_reverse)",
         "p2g": "eq 54-65, 71",
         "g2p": "eq 47-48, 57, 66-69",
         "check_particle": "a non-finite adjoint (no equation)",
@@ -53,8 +55,16 @@ NO_TWIN = {
         "free_velocity": "differentiated inline by grid_op_node_reverse (eq 50-53)",
     },
     "material": {
-        "cofactor": "linear: stress_reverse uses cofactor itself as its adjoint",
-        "polar_rotation": "differentiated inline by stress_reverse (dR/dtheta)",
+        "cofactor": "differentiated by adjoint.material.cofactor_adjoint (2D: linear, cofactor itself; 3D: bilinear)",
+        "polar_rotation": "differentiated in closed form by adjoint.material.rotation_adjoint (2D dR/dtheta, 3D R [omega])",
+        "svd_rotation": "polar_rotation's starting guess: its Newton steps make dR independent of it",
+        "jacobi_rotate": "part of svd_rotation's starting guess (no derivative needed)",
+        "sort_columns": "part of svd_rotation's starting guess (no derivative needed)",
+        "unit_or": "part of svd_rotation's starting guess (no derivative needed)",
+        "rotation_solve": "linear in h: rotation_adjoint calls it again with the adjoint (M is symmetric)",
+        "cayley": "polar_rotation's Newton update; rotation_adjoint uses its first order, I + [omega]_x",
+        "cross_matrix": "linear: rotation_adjoint applies it to the adjoint",
+        "axial": "linear: rotation_adjoint applies it to the adjoint",
     },
     "losses": {
         "splat_value": "constant in x: splat_reverse reads it",

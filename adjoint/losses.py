@@ -1,7 +1,8 @@
 """Back-propagation initialization (eq 41-46): the loss seeds on the final step's particles, twins of mls_mpm.losses."""
 import taichi as ti
 
-from mls_mpm.kernels import node_weight, offsets, on_grid, stencil, weights
+from mls_mpm.config import STENCIL
+from mls_mpm.kernels import join, node_weight, on_grid, slab_offsets, stencil, weights
 from mls_mpm.losses import OT_KINDS, node_penalty, node_residual, splat_value
 
 from .state import zero_step
@@ -32,12 +33,24 @@ def splat_reverse(s: ti.template(), g: ti.template(), a: ti.template(), f: ti.i3
         w, dw = weights(fx)
         value = splat_value(s, g, p)
         adj_x = ti.Vector.zero(float, s.dim)
-        for o in ti.static(offsets(s.dim)):
-            I = base + o
-            if on_grid(I, g.m):
-                _, dN = node_weight(w, dw, o, g.inv_dx)
-                adj_x += dN * value.dot(g.adj_m[I])
+        if ti.static(s.dim == 2):  # the stencil's outer loop: see mls_mpm.kernels.slab_offsets
+            for i0 in ti.static(range(STENCIL)):
+                adj_x = splat_slab_gather(g, base, w, dw, value, i0, adj_x)
+        else:
+            for i0 in range(STENCIL):
+                adj_x = splat_slab_gather(g, base, w, dw, value, i0, adj_x)
         a.adj_x[f % 2, p] += adj_x
+
+
+@ti.func
+def splat_slab_gather(g: ti.template(), base, w, dw, value, i0, adj_x):
+    """Slab i0 of splat_reverse: sum over its nodes on the loss grid of dN/dx_p (value_p . dL/dm_i), added to adj_x."""
+    for o2 in ti.static(slab_offsets(base.n)):
+        I = base + join(i0, o2)
+        if on_grid(I, g.m):
+            _, dN = node_weight(w, dw, i0, o2, g.inv_dx)
+            adj_x += dN * value.dot(g.adj_m[I])
+    return adj_x
 
 
 @ti.kernel

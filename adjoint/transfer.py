@@ -1,7 +1,8 @@
 """Reverse G2P (eq 47-48, 66-69), reverse P2G (eq 54-65, 71) and the adjoint's fault check for one step f."""
 import taichi as ti
 
-from mls_mpm.kernels import inside, node_weight, offsets, stencil, weights
+from mls_mpm.config import STENCIL
+from mls_mpm.kernels import inside, join, node_weight, slab_offsets, stencil, weights
 from mls_mpm.material import stress
 from mls_mpm.transfer import affine_momentum, control_sum
 
@@ -42,17 +43,35 @@ def g2p_particle_reverse(s: ti.template(), a: ti.template(), f, p, lane):
         k = 3.0 * s.inv_dx * s.inv_dx
         adj_x = adj_x_next
         sum_v = ti.Vector.zero(float, s.dim)  # sum_i N v_i
-        for o in ti.static(offsets(s.dim)):
-            N, dN = node_weight(w, dw, o, s.inv_dx)
-            dpos = (o - fx) * s.dx
-            v_i = s.grid_v[f, base + o]
-            adj_v_i = adj_v_new + k * adj_C_new @ dpos
-            scatter_adj_node(s, a, lane, base + o, N * adj_v_i)
-            adj_x += dN * v_i.dot(adj_v_i)  # adj_C_new : v_i dpos^T = v_i . adj_C_new dpos
-            sum_v += N * v_i
+        if ti.static(s.dim == 2):  # the stencil's outer loop: see mls_mpm.kernels.slab_offsets
+            for i0 in ti.static(range(STENCIL)):
+                adj_x, sum_v = g2p_slab_reverse(s, a, f, lane, base, fx, w, dw, adj_v_new, adj_C_new, i0, adj_x,
+                                                sum_v)
+        else:
+            for i0 in range(STENCIL):
+                adj_x, sum_v = g2p_slab_reverse(s, a, f, lane, base, fx, w, dw, adj_v_new, adj_C_new, i0, adj_x,
+                                                sum_v)
         adj_x -= k * adj_C_new.transpose() @ sum_v
         a.adj_x[dst, p] += adj_x
         a.adj_F[dst, p] += (ti.Matrix.identity(float, s.dim) + s.dt * s.C[f + 1, p]).transpose() @ adj_F_next
+
+
+@ti.func
+def g2p_slab_reverse(s: ti.template(), a: ti.template(), f, lane, base, fx, w, dw, adj_v_new, adj_C_new, i0, adj_x,
+                     sum_v):
+    """Slab i0 of g2p_particle_reverse: dL/dv_i of its nodes (eq 48), and their terms of dL/dx_p (eq 66-69) and
+    of sum_i N v_i, added to adj_x, sum_v."""
+    k = 3.0 * s.inv_dx * s.inv_dx
+    for o2 in ti.static(slab_offsets(s.dim)):
+        o = join(i0, o2)
+        N, dN = node_weight(w, dw, i0, o2, s.inv_dx)
+        dpos = (o - fx) * s.dx
+        v_i = s.grid_v[f, base + o]
+        adj_v_i = adj_v_new + k * adj_C_new @ dpos
+        scatter_adj_node(s, a, lane, base + o, N * adj_v_i)
+        adj_x += dN * v_i.dot(adj_v_i)  # adj_C_new : v_i dpos^T = v_i . adj_C_new dpos
+        sum_v += N * v_i
+    return adj_x, sum_v
 
 
 @ti.func
@@ -78,14 +97,12 @@ def p2g_particle_reverse(s: ti.template(), a: ti.template(), f, p):
         adj_x = ti.Vector.zero(float, s.dim)
         sum_adj_p = ti.Vector.zero(float, s.dim)  # sum_i N dL/dp_i
         adj_G = ti.Matrix.zero(float, s.dim, s.dim)
-        for o in ti.static(offsets(s.dim)):
-            N, dN = node_weight(w, dw, o, s.inv_dx)
-            dpos = (o - fx) * s.dx
-            adj_m_i = a.adj_grid_m[base + o]
-            adj_p_i = a.adj_grid_p[base + o]
-            adj_x += dN * (s.m_p * adj_m_i + adj_p_i.dot(mv + G @ dpos))
-            sum_adj_p += N * adj_p_i
-            adj_G += N * adj_p_i.outer_product(dpos)
+        if ti.static(s.dim == 2):  # the stencil's outer loop: see mls_mpm.kernels.slab_offsets
+            for i0 in ti.static(range(STENCIL)):
+                adj_x, sum_adj_p, adj_G = p2g_slab_reverse(s, a, base, fx, w, dw, G, mv, i0, adj_x, sum_adj_p, adj_G)
+        else:
+            for i0 in range(STENCIL):
+                adj_x, sum_adj_p, adj_G = p2g_slab_reverse(s, a, base, fx, w, dw, G, mv, i0, adj_x, sum_adj_p, adj_G)
         adj_x -= G.transpose() @ sum_adj_p
         adj_v = drag * sum_adj_p
         adj_A = -3.0 * s.inv_dx * s.inv_dx * s.dt * s.vol * adj_G
@@ -97,6 +114,21 @@ def p2g_particle_reverse(s: ti.template(), a: ti.template(), f, p):
         a.adj_F[dst, p] += adj_Fs
         if f % s.stride == 0:
             a.adj_F_pc[f // s.stride, p] += a.adj_F[dst, p]
+
+
+@ti.func
+def p2g_slab_reverse(s: ti.template(), a: ti.template(), base, fx, w, dw, G, mv, i0, adj_x, sum_adj_p, adj_G):
+    """Slab i0 of p2g_particle_reverse: its nodes' terms of dL/dx_p (eq 64-65), sum_i N dL/dp_i and dL/dG."""
+    for o2 in ti.static(slab_offsets(s.dim)):
+        o = join(i0, o2)
+        N, dN = node_weight(w, dw, i0, o2, s.inv_dx)
+        dpos = (o - fx) * s.dx
+        adj_m_i = a.adj_grid_m[base + o]
+        adj_p_i = a.adj_grid_p[base + o]
+        adj_x += dN * (s.m_p * adj_m_i + adj_p_i.dot(mv + G @ dpos))
+        sum_adj_p += N * adj_p_i
+        adj_G += N * adj_p_i.outer_product(dpos)
+    return adj_x, sum_adj_p, adj_G
 
 
 @ti.func

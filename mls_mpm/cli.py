@@ -89,6 +89,7 @@ def run_options(parser, what, command):
 
 
 def build_parser():
+    from .export3d import MODES_3D
     from .scene import RENDER_MODES, RENDER_SIZE_MAX, RENDER_SIZE_MIN
 
     fmt = argparse.ArgumentDefaultsHelpFormatter
@@ -130,7 +131,9 @@ def build_parser():
 
     render = sub.add_parser("render", formatter_class=fmt, help="re-render a finished run from its result.npz")
     render.add_argument("dir", help="output folder of a finished run")
-    render.add_argument("--mode", choices=RENDER_MODES, help="default: the scene's render.mode")
+    render.add_argument("--mode", choices=RENDER_MODES + tuple(m for m in MODES_3D if m not in RENDER_MODES),
+                        help=f"2D runs: {'|'.join(RENDER_MODES)}; 3D runs: {'|'.join(MODES_3D)} "
+                             "(default: the scene's render.mode; mass or color mean surface in 3D)")
     render.add_argument("--size", type=integer(RENDER_SIZE_MIN, RENDER_SIZE_MAX, " pixels"),
                         help=f"image size in pixels, {RENDER_SIZE_MIN} to {RENDER_SIZE_MAX} (default: render.size)")
     render.add_argument("--every", type=integer(1), help="a frame every K >= 1 steps (default: render.every)")
@@ -148,10 +151,12 @@ def build_parser():
                                      "table to this file (its folder must exist); quality: output folder "
                                      "(default: renders/bench_quality/)")
     bench.add_argument("--quick", action="store_true",
-                       help="gradient: 40 steps; tradeoff: fewer rows and iterations (under 10 minutes); quality: "
+                       help="gradient: 40 steps (3D: 10); tradeoff: fewer rows and iterations (under 10 minutes); quality: "
                             "3 pairs at --quality fast")
     bench.add_argument("--arch", choices=["cpu", "gpu", "cuda", "vulkan"], default="cpu",
                        help="gradient: the Taichi backend measured")
+    bench.add_argument("--dim", type=int, choices=[2, 3], default=None,
+                       help="gradient: only the cases of this dimension (default: the 2D and the 3D cases)")
     bench.add_argument("--max-seconds", type=float, default=None,
                        help="tradeoff: wall-time budget of one row; a row over it is stopped and marked (default: "
                             "no limit)")
@@ -303,6 +308,8 @@ def cmd_bench(args):
         raise BenchError(f"bench {args.what}: SCENE {args.scene}: a scene applies to bench tradeoff only; drop it")
     if args.arch != "cpu" and args.what != "gradient":
         raise BenchError(f"bench {args.what}: --arch applies to bench gradient only; drop it")
+    if args.dim is not None and args.what != "gradient":
+        raise BenchError(f"bench {args.what}: --dim applies to bench gradient only; drop it")
     if args.max_seconds is not None and (args.what != "tradeoff" or not 0 < args.max_seconds < math.inf):
         raise BenchError(f"bench {args.what}: --max-seconds {args.max_seconds:g}: expected seconds > 0, with bench "
                          "tradeoff only")
@@ -325,7 +332,7 @@ def cmd_bench(args):
     if args.what == "gradient":
         from .bench import bench_gradient
 
-        bench_gradient(quick=args.quick, arch=args.arch, out=args.out)
+        bench_gradient(quick=args.quick, arch=args.arch, out=args.out, dims=(2, 3) if args.dim is None else (args.dim,))
         return 0
     if args.what == "scaling":
         from .bench import bench_scaling

@@ -2,7 +2,12 @@
 
 A render writes its frames into frames.new/ beside the frames/ of the last one and swaps the folders only when
 every frame is written (`swap_in`), so a render that fails or is interrupted leaves the old frames as they were
-(`discard_new`). `recover` cleans what a killed render left before the next one starts.
+(`discard_new`). `recover` cleans what a killed render left before the next one starts. The same three work on
+any sequence folder (`folder=`: the particles/ and meshes/ of a 3D run, export3d.py), each file of which a
+`FrameWriter` writes atomically through its `save` function.
+
+Frames are RGB, or RGBA where the background is transparent (render.background = "transparent"); what shows
+them without an alpha channel (the GIF, the video, a sheet) composites them on white first (`on_white`).
 """
 from __future__ import annotations
 
@@ -26,12 +31,12 @@ OLD_DIR = "frames.old"  # the frames a finished render replaces, between the two
 TEMP_RE = re.compile(r"^\.(?P<name>.+)\.(?P<pid>\d+)\.tmp$")  # `temp_path`: .NAME.PID.tmp beside NAME
 
 
-def frame_paths(frames_dir):
-    """The frame files of a directory, ordered by their number."""
+def frame_paths(frames_dir, pattern=FRAME_RE):
+    """The frame files of a directory (names matching pattern, group 1 the number), ordered by their number."""
     frames_dir = Path(frames_dir)
     if not frames_dir.is_dir():
         return []
-    found = [(int(m.group(1)), p) for p in frames_dir.iterdir() if (m := FRAME_RE.match(p.name))]
+    found = [(int(m.group(1)), p) for p in frames_dir.iterdir() if (m := pattern.match(p.name))]
     return [p for _, p in sorted(found)]
 
 
@@ -65,23 +70,28 @@ def remove_stale_temps(folder, names):
             p.unlink(missing_ok=True)
 
 
-def recover(out_dir):
-    """Undo what a killed render left in out_dir: frames.old/ goes back to frames/ when the swap was cut
-    between its renames (frames/ missing), else it is deleted; frames.new/ and stale frame temporaries go."""
+def _folders(out_dir, folder):
+    """(FOLDER, FOLDER.new, FOLDER.old) in out_dir: the finished sequence, the one being written, the one replaced."""
     out = Path(out_dir)
-    frames, new, old = out / FRAMES_DIR, out / NEW_DIR, out / OLD_DIR
+    return out / folder, out / f"{folder}.new", out / f"{folder}.old"
+
+
+def recover(out_dir, folder=FRAMES_DIR, names=FRAME_RE):
+    """Undo what a killed render left in out_dir: frames.old/ goes back to frames/ when the swap was cut
+    between its renames (frames/ missing), else it is deleted; frames.new/ and stale temporaries of files
+    named like names go. folder: the sequence folder (frames, particles, meshes)."""
+    frames, new, old = _folders(out_dir, folder)
     if old.is_dir() and not frames.exists():
         os.replace(old, frames)
     shutil.rmtree(old, ignore_errors=True)
     shutil.rmtree(new, ignore_errors=True)
-    remove_stale_temps(frames, FRAME_RE)
+    remove_stale_temps(frames, names)
 
 
-def swap_in(out_dir):
+def swap_in(out_dir, folder=FRAMES_DIR):
     """Make out_dir/frames.new/ the frames/ folder: the old frames renamed away, the new renamed in, the old
     deleted. Returns the frames folder."""
-    out = Path(out_dir)
-    frames, new, old = out / FRAMES_DIR, out / NEW_DIR, out / OLD_DIR
+    frames, new, old = _folders(out_dir, folder)
     if frames.exists():
         os.replace(frames, old)
     os.replace(new, frames)
@@ -89,23 +99,40 @@ def swap_in(out_dir):
     return frames
 
 
-def discard_new(out_dir):
+def discard_new(out_dir, folder=FRAMES_DIR):
     """Delete the frames of a render that did not finish (out_dir/frames.new/)."""
-    shutil.rmtree(Path(out_dir) / NEW_DIR, ignore_errors=True)
+    shutil.rmtree(_folders(out_dir, folder)[1], ignore_errors=True)
 
 
 def save_png(image, path):
-    """Write a uint8 (H, W, 3) array to path atomically: a temporary file in the same folder, then os.replace."""
+    """Write a uint8 (H, W, 3) RGB or (H, W, 4) RGBA array to path atomically (`atomic_save`)."""
+    image = _as_u8(image, channels=(3, 4))
+    mode = "RGB" if image.shape[2] == 3 else "RGBA"
+    return atomic_save(path, lambda tmp: Image.fromarray(image, mode).save(tmp, format="PNG",
+                                                                          compress_level=PNG_COMPRESS_LEVEL))
+
+
+def atomic_save(path, write):
+    """Write a file atomically: write(tmp) writes a temporary file in the same folder (`temp_path`), which is
+    then renamed onto path; on any failure the temporary file is deleted and path is left as it was."""
     path = Path(path)
-    image = _as_u8(image)
     tmp = temp_path(path)
     try:
-        Image.fromarray(image, "RGB").save(tmp, format="PNG", compress_level=PNG_COMPRESS_LEVEL)
+        write(tmp)
         os.replace(tmp, path)
     finally:
         if tmp.exists():
             tmp.unlink()
     return path
+
+
+def on_white(im):
+    """A Pillow image as RGB, an alpha channel composited on white (what a transparent frame looks like in the
+    GIF and the video); an RGB image is returned as RGB unchanged."""
+    if im.mode in ("RGBA", "LA") or (im.mode == "P" and "transparency" in im.info):
+        im = im.convert("RGBA")
+        return Image.alpha_composite(Image.new("RGBA", im.size, (255, 255, 255, 255)), im).convert("RGB")
+    return im.convert("RGB")
 
 
 class FrameWriter:
@@ -114,22 +141,26 @@ class FrameWriter:
     clear=True removes frame files left by an earlier run first; clear=False continues after the last one
     (to extend an animation, thesis 7.4). Each frame is written atomically; nothing is kept in memory.
     folder: the frame folder's name in out_dir (NEW_DIR for a render that `swap_in` will finish).
+    name, pattern, save: another kind of numbered file (export3d.py's PLY sequences): its name with one {}
+    for the number, the regex of such names (group 1 the number), and save(item, path), which writes one
+    atomically.
     """
 
-    def __init__(self, out_dir, clear=True, folder=FRAMES_DIR):
+    def __init__(self, out_dir, clear=True, folder=FRAMES_DIR, name=FRAME_NAME, pattern=FRAME_RE, save=save_png):
         self.frames_dir = Path(out_dir) / folder
         self.frames_dir.mkdir(parents=True, exist_ok=True)
-        existing = frame_paths(self.frames_dir)
+        self.name, self.pattern, self.save = name, pattern, save
+        existing = frame_paths(self.frames_dir, pattern)
         if clear:
             for p in existing:
                 p.unlink()
             self.count = 0
         else:
-            self.count = int(FRAME_RE.match(existing[-1].name).group(1)) + 1 if existing else 0
+            self.count = int(pattern.match(existing[-1].name).group(1)) + 1 if existing else 0
 
     def write(self, image):
-        """Write the next frame and return its path."""
-        path = save_png(image, self.frames_dir / FRAME_NAME.format(self.count))
+        """Write the next frame (or item of the sequence) and return its path."""
+        path = self.save(image, self.frames_dir / self.name.format(self.count))
         self.count += 1
         return path
 
@@ -147,7 +178,7 @@ def write_gif(frames_dir, path, max_size=256, fps=20):
     def frames():
         for p in paths:
             with Image.open(p) as im:
-                im = im.convert("RGB")
+                im = on_white(im)
                 scale = min(1.0, max_size / max(im.size))
                 if scale < 1.0:
                     im = im.resize((max(1, round(im.width * scale)), max(1, round(im.height * scale))),
@@ -156,15 +187,8 @@ def write_gif(frames_dir, path, max_size=256, fps=20):
 
     it = frames()
     first = next(it)
-    path = Path(path)
-    tmp = temp_path(path)
-    try:
-        first.save(tmp, format="GIF", save_all=True, append_images=it, duration=round(1000 / fps), loop=0,
-                   optimize=False, disposal=1)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    atomic_save(path, lambda tmp: first.save(tmp, format="GIF", save_all=True, append_images=it,
+                                             duration=round(1000 / fps), loop=0, optimize=False, disposal=1))
     return len(paths)
 
 
@@ -243,8 +267,9 @@ def loss_plot(losses, path, size=(640, 400), title="loss"):
     return path
 
 
-def _as_u8(image):
+def _as_u8(image, channels=(3,)):
     image = np.asarray(image)
-    if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
-        raise ValueError(f"image: expected uint8 (H, W, 3), got {image.dtype} {image.shape}")
+    if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] not in channels:
+        shapes = " or ".join(f"(H, W, {k})" for k in channels)
+        raise ValueError(f"image: expected uint8 {shapes}, got {image.dtype} {image.shape}")
     return np.ascontiguousarray(image)

@@ -4,11 +4,28 @@ import taichi as ti
 from .config import STENCIL
 
 
-def offsets(dim):
-    """The 4^dim node offsets of the stencil, first axis outermost (as ti.ndrange(4, 4)); loop over them with
-    `for o in ti.static(offsets(dim))` so that the loop unrolls at compile time."""
-    return ti.grouped(ti.ndrange(*[STENCIL] * dim))
+# Stencil loops: axis 0 of the 4^dim nodes is the outer loop, one "slab" of 4^(dim - 1) nodes per step of it,
+# unrolled (ti.static). In 2D the outer loop is unrolled too (16 nodes: ti.ad.Tape differentiates only unrolled
+# loops, and it is the test oracle). In 3D it is a runtime loop: the full 64-node unroll of the P2G, G2P and
+# reverse kernels with the 3D stress takes LLVM over 20 minutes to compile, a slab of 16 seconds. Each kernel
+# writes its outer loop as
+#     if ti.static(dim == 2):
+#         for i0 in ti.static(range(STENCIL)): acc = slab(..., i0, acc)
+#     else:
+#         for i0 in range(STENCIL): acc = slab(..., i0, acc)
+# with the accumulators passed through the slab function, so that every sum adds the nodes in the same order.
 
+
+def slab_offsets(dim):
+    """The offsets along axes 1.. of one slab (4^(dim - 1) nodes, axis 1 outermost, as ti.ndrange); loop over them
+    with `for o2 in ti.static(slab_offsets(dim))` so that the loop unrolls at compile time."""
+    return ti.grouped(ti.ndrange(*[STENCIL] * (dim - 1)))
+
+
+@ti.func
+def join(i0, o2):
+    """The node offset (i0, o2) of slab i0."""
+    return ti.Vector([i0] + [o2[d] for d in ti.static(range(o2.n))])
 
 
 @ti.func
@@ -46,25 +63,25 @@ def weights(fx):
 
 
 @ti.func
-def node_N(w, offset):
-    """N(x_i - x_p) = prod_d N1 for node base + offset (eq 1)."""
-    N = w[offset[0], 0]
-    for d in ti.static(range(1, offset.n)):
-        N *= w[offset[d], d]
+def node_N(w, i0, o2):
+    """N(x_i - x_p) = prod_d N1 for node base + (i0, o2) (eq 1)."""
+    N = w[i0, 0]
+    for d in ti.static(range(o2.n)):
+        N *= w[o2[d], d + 1]
     return N
 
 
 @ti.func
-def node_weight(w, dw, offset, inv_dx):
-    """N(x_i - x_p) for node base + offset, and its gradient with respect to x_p (eq 2)."""
-    dim = ti.static(offset.n)
+def node_weight(w, dw, i0, o2, inv_dx):
+    """N(x_i - x_p) for node base + (i0, o2), and its gradient with respect to x_p (eq 2)."""
+    dim = ti.static(o2.n + 1)
     dN = ti.Vector.zero(float, dim)
     for e in ti.static(range(dim)):
-        g = dw[offset[0], 0] if ti.static(e == 0) else w[offset[0], 0]
+        g = dw[i0, 0] if ti.static(e == 0) else w[i0, 0]
         for d in ti.static(range(1, dim)):
-            g *= dw[offset[d], d] if ti.static(d == e) else w[offset[d], d]
+            g *= dw[o2[d - 1], d] if ti.static(d == e) else w[o2[d - 1], d]
         dN[e] = g
-    return node_N(w, offset), dN * inv_dx
+    return node_N(w, i0, o2), dN * inv_dx
 
 
 @ti.func
@@ -86,12 +103,22 @@ def on_grid(I, grid: ti.template()) -> ti.i32:
 
 
 @ti.func
+def splat_slab(grid: ti.template(), base, w, value, i0):
+    for o2 in ti.static(slab_offsets(base.n)):
+        I = base + join(i0, o2)
+        if on_grid(I, grid):
+            grid[I] += node_N(w, i0, o2) * value
+
+
+@ti.func
 def splat_particle(grid: ti.template(), X, inv_dx, value):
     """P2G of one particle's value (m_p, eq 15, or m_p c_p, eq 12) onto the 4^dim nodes around X:
     grid[i] += N(x_i - X) value, nodes off the grid dropped (a loss grid's nodes beyond the domain)."""
     base, fx = stencil(X, inv_dx)
     w, _ = weights(fx)
-    for o in ti.static(offsets(X.n)):
-        I = base + o
-        if on_grid(I, grid):
-            grid[I] += node_N(w, o) * value
+    if ti.static(X.n == 2):  # the stencil's outer loop: see slab_offsets
+        for i0 in ti.static(range(STENCIL)):
+            splat_slab(grid, base, w, value, i0)
+    else:
+        for i0 in range(STENCIL):
+            splat_slab(grid, base, w, value, i0)

@@ -5,8 +5,8 @@ A `Renderer` is built once per run; it owns its fields and renders one frame at 
 or color frame is one kernel launch painting the Renderer's white image field (P2G and the two sampling passes
 of `sampling`, then `colormap`'s shading), copied out as the frame; outlines are drawn over it by `contour`.
 
-Images are uint8 (size, size, 3) arrays indexed [row, column]; the y axis points up like the domain's, so
-row 0 is y = 1 and column 0 is x = 0. Pixel (r, c) samples the domain point ((c + 1/2) / size, 1 - (r + 1/2) / size).
+Images are uint8 (size, size, 3) arrays indexed [row, column] (or (size, size, 4) with background="transparent");
+the y axis points up like the domain's, so row 0 is y = 1 and column 0 is x = 0. Pixel (r, c) samples the domain point ((c + 1/2) / size, 1 - (r + 1/2) / size).
 """
 import numpy as np
 import taichi as ti
@@ -22,6 +22,7 @@ BODY_COLOR = (0.85, 0.1, 0.1)  # particles of the body (Fig 3: red)
 TARGET_COLOR = (0.0, 0.6, 0.0)  # target positions (Fig 3: green)
 TARGET_OUTLINE_COLOR = (0.0, 0.0, 0.0)  # contour of the target mass grid
 BODY_OUTLINE_COLOR = (0.35, 0.35, 0.35)  # contour of the body at the "empty" threshold
+BACKGROUNDS = ("white", "transparent")  # render.background: a white frame, or one with an alpha channel
 
 
 @ti.kernel
@@ -134,6 +135,10 @@ class Renderer:
         the body (over particles too).
     target_level: normalised mass level of the target outline (0.5: the edge of a B-spline-smoothed shape).
     line_width: outline width in pixels.
+    background: "white", or "transparent": frames gain an alpha channel, 0 on the background and 255 on the
+        material (pixels where m(x) / rest_node_mass > thresholds.empty in the mass and color modes) and on
+        every pixel drawn in another color than white (particles, dots, outlines). The background keeps its
+        white RGB, so a transparent frame composited on white is the white frame, byte for byte.
 
     Outlines are marching-squares contours of the pixel-sampled field (`cell_segments`: endpoints interpolated
     linearly between pixel centers, saddles resolved by the cell-center average), drawn line_width pixels wide
@@ -141,9 +146,11 @@ class Renderer:
     """
 
     def __init__(self, n_grid, n_particles, size=512, rest_node_mass=None, mode="mass", thresholds=None,
-                 radius=1.5, body_outline=False, target_level=0.5, line_width=1):
+                 radius=1.5, body_outline=False, target_level=0.5, line_width=1, background="white"):
         if mode not in RENDER_MODES:
             raise ValueError(f"mode = {mode!r}: expected one of {', '.join(RENDER_MODES)}")
+        if background not in BACKGROUNDS:
+            raise ValueError(f"background = {background!r}: expected one of {', '.join(BACKGROUNDS)}")
         for name, value, least in (("n_grid", n_grid, STENCIL), ("n_particles", n_particles, 0),
                                    ("size", size, 1), ("line_width", line_width, 1)):
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
@@ -166,6 +173,7 @@ class Renderer:
         self.body_outline = bool(body_outline)
         self.target_level = float(target_level)
         self.line_width = int(line_width)
+        self.background = background
         self.inv_dx = float(n_grid)
         self.real = real_dtype()
 
@@ -183,7 +191,7 @@ class Renderer:
 
     # -- one frame ---------------------------------------------------------------------------------------
     def render(self, x, m_p, colors=None, F=None, target_x=None, target_outline=None):
-        """One frame as uint8 (size, size, 3).
+        """One frame as uint8 (size, size, 3), or (size, size, 4) with a transparent background.
 
         x: (N, 2) positions; m_p: particle mass, a number or (N,); colors: (N, 3) RGB in [0, 1] (uint8 is
         read as 0..255), required in "color" mode; F: (N, 2, 2) deformation gradients, drawn as ellipses in
@@ -222,7 +230,10 @@ class Renderer:
             self._outline(self._target_field(target_outline), image, self.target_level, TARGET_OUTLINE_COLOR)
         if target_x is not None:
             self._dots(image, target_x, TARGET_COLOR)
-        return image.to_numpy()  # each frame gets its own array
+        frame = image.to_numpy()  # each frame gets its own array
+        if self.background == "white":
+            return frame
+        return self._with_alpha(frame, self.pixel_m.to_numpy() > th.empty if self.mode != "particles" else None)
 
     def render_target(self, target_mass, outline=True):
         """A (res, res) target mass grid in the mass colormap (e.g. the "target" panel of a sheet).
@@ -247,6 +258,15 @@ class Renderer:
         return s, rgb
 
     # -- helpers -----------------------------------------------------------------------------------------
+    @staticmethod
+    def _with_alpha(frame, material=None):
+        """frame (H, W, 3) with an alpha channel: 255 where material (a bool (H, W) mask, or None) or where the
+        pixel is not white, 0 elsewhere."""
+        opaque = np.any(frame != 255, axis=2)
+        if material is not None:
+            opaque |= material
+        return np.concatenate([frame, np.where(opaque, 255, 0).astype(np.uint8)[..., None]], axis=2)
+
     def _blank(self):
         """The image field, white. The frame kernels draw into this field rather than into a numpy array: on
         a GPU Taichi does not upload an array that a kernel only writes, so a white array would not stay white."""

@@ -1,16 +1,20 @@
 """Render a finished run from its result.npz: re-simulate the stored controls, one frame at a time.
 
-Writes frames/frame_NNNNN.png every `every` steps of every round in sequence, animation.gif, sheet.png
-(initial | middle | final | target) and loss.png. Used by `mls-mpm run` and `mls-mpm render`, so both
-produce the same bytes.
+Writes frames/frame_NNNNN.png every `every` steps of every round in sequence, animation.gif, animation.mp4,
+sheet.png (initial | middle | final | target) and loss.png. A 3D run (sim.dim = 3) also writes, for the same
+frames, particles/frame_NNNNN.ply and meshes/frame_NNNNN.ply (export3d.py), and its frames are the headless
+preview of render3d.py (modes surface | volume | particles; a scene's 2D mode mass or color means surface, a
+colour scene showing its colours). Used by `mls-mpm run` and `mls-mpm render`, so both produce the same bytes.
 
 Nothing is allocated or written before the options are checked, the folder's summary.json is found to be of
-the same run as result.npz, and the renderer is known to fit in memory. The frames go to frames.new/ and replace
-frames/ only when all are written; a failure, or should_stop turning true before a frame, deletes frames.new/
-and keeps the old frames. The GIF, the sheet and the loss plot are built after the swap, each atomically.
+the same run as result.npz, and the renderer is known to fit in memory. The frames go to frames.new/ (and the
+3D sequences to particles.new/, meshes.new/) and replace frames/ only when all are written; a failure, or
+should_stop turning true before a frame, deletes the .new folders and keeps the old ones. The GIF, the video,
+the sheet and the loss plot are built after the swap, each atomically.
 """
 import json
 import re
+import time
 from pathlib import Path
 
 import numpy as np
@@ -18,15 +22,21 @@ from PIL import Image
 
 from . import memory, runtime
 from .errors import Interrupted, UserError
-from .frames import (NEW_DIR, FrameWriter, discard_new, frame_paths, loss_plot, recover, remove_stale_temps,
-                     save_png, sheet, swap_in, write_gif)
+from .export3d import MESHES_DIR, MODES_3D, PARTICLES_DIR, PLY_NAME, PLY_RE, surface, write_mesh, write_particles
+from .field3d import frame_field, mass_field
+from .frames import (FRAME_RE, FRAMES_DIR, NEW_DIR, FrameWriter, discard_new, frame_paths, loss_plot, on_white,
+                     recover, remove_stale_temps, save_png, sheet, swap_in, write_gif)
 from .problem import rest_node_mass
-from .render import Renderer, estimate_bytes
+from .render import BACKGROUNDS, Renderer, estimate_bytes
+from .render3d import Preview3D, estimate_bytes_3d
 from .result import STATE_KEYS, config_of, load_result
 from .scene import RENDER_MODES, RENDER_SIZE_MAX, RENDER_SIZE_MIN
 from .simulator import Simulator
+from .video import write_mp4
 
-OUTPUTS_RE = re.compile(r"^(animation\.gif|sheet\.png|loss\.png)$")  # the files built from the frames
+OUTPUTS_RE = re.compile(r"^(animation\.gif|animation\.mp4|sheet\.png|loss\.png)$")  # the files built from the frames
+SEQUENCES = {FRAMES_DIR: FRAME_RE, PARTICLES_DIR: PLY_RE, MESHES_DIR: PLY_RE}  # folders a render swaps in
+MODE_3D_OF = {"mass": "surface", "color": "surface"}  # a scene's 2D render.mode (its default) in a 3D run
 
 
 class RenderError(UserError):
@@ -45,54 +55,112 @@ def render_run(out_dir, mode=None, size=None, every=None, arch=None, emit=print,
     _check_summary(out, settings)
     rs = settings["render"]
     where = f"in {out / 'result.npz'}"
-    size_named = f"--size {size}" if size is not None else f"render.size = {rs['size']} {where}"
-    mode, size, every = (_option(name, value, rs[name], where) for name, value in
-                         (("mode", mode), ("size", size), ("every", every)))
     cfg = config_of(settings, arch)
+    dim = cfg.dim
+    stored = dict(rs, mode=MODE_3D_OF.get(rs["mode"], rs["mode"]) if dim == 3 else rs["mode"])
+    size_named = f"--size {size}" if size is not None else f"render.size = {rs['size']} {where}"
+    mode, size, every = (_option(name, value, stored[name], where, MODES_3D if dim == 3 else RENDER_MODES)
+                         for name, value in (("mode", mode), ("size", size), ("every", every)))
+    background = rs.get("background", "white")
+    if background not in BACKGROUNDS:
+        raise RenderError(f"render.background = {background!r} {where}: expected one of {', '.join(BACKGROUNDS)}")
     controls = arrays["controls"]
     N = controls.shape[2]
     outline = arrays["target_grid"] if rs.get("outline", False) else None
     _check_memory(cfg, N, size, mode, None if outline is None else len(outline), size_named)
     emit(f"rendering scene {settings['scene']['name']} from {out / 'result.npz'}")
+    sequences = list(SEQUENCES) if dim == 3 else [FRAMES_DIR]
+    timing = {}
     try:
-        recover(out)
+        for folder in sequences:
+            recover(out, folder, SEQUENCES[folder])
         remove_stale_temps(out, OUTPUTS_RE)
         runtime.ensure(cfg)  # the Renderer allocates fields before any Simulator starts Taichi
-        renderer = Renderer(cfg.n_grid, N, size=size, rest_node_mass=rest_node_mass(cfg, cfg.n_grid), mode=mode,
-                            body_outline=outline is not None)
-        writer = FrameWriter(out, folder=NEW_DIR)
-        for state in _states(cfg, meta, arrays, every):
-            if should_stop is not None and should_stop():
-                raise Interrupted("rendering interrupted; the old frames are kept")
-            writer.write(renderer.render(state["x"], cfg.m_p, colors=arrays["colors"], F=state["F"],
-                                         target_x=arrays.get("target_x"), target_outline=outline))
-        frames_dir = swap_in(out)
+        if dim == 2:
+            renderer = Renderer(cfg.n_grid, N, size=size, rest_node_mass=rest_node_mass(cfg, cfg.n_grid),
+                                mode=mode, body_outline=outline is not None, background=background)
+            writer = FrameWriter(out, folder=NEW_DIR)
+            for state in _states(cfg, meta, arrays, every):
+                if should_stop is not None and should_stop():
+                    raise Interrupted("rendering interrupted; the old frames are kept")
+                writer.write(renderer.render(state["x"], cfg.m_p, colors=arrays["colors"], F=state["F"],
+                                             target_x=arrays.get("target_x"), target_outline=outline))
+        else:
+            renderer = Preview3D(cfg.n_grid, size, mode, colored=_colored(settings),
+                                 spacing=cfg.dx / cfg.particles_per_cell ** (1 / 3))
+            _render_3d(out, renderer, cfg, meta, arrays, every, outline, should_stop, timing)
+        frames_dir = [swap_in(out, folder) for folder in sequences][0]
     except OSError as e:
-        discard_new(out)
+        for folder in sequences:
+            discard_new(out, folder)
         raise RenderError(f"{out}: cannot write the frames ({e.strerror or e})") from None
     except BaseException:
-        discard_new(out)
+        for folder in sequences:
+            discard_new(out, folder)
         raise
     paths = frame_paths(frames_dir)
-    emit(f"wrote {len(paths)} frames to {frames_dir}")
+    emit(f"wrote {len(paths)} frames to {frames_dir}" + (f" and as many to {out / PARTICLES_DIR}, "
+                                                           f"{out / MESHES_DIR}" if dim == 3 else ""))
+    if timing:
+        emit("per frame: " + ", ".join(f"{k} {1e3 * v / len(paths):.1f} ms" for k, v in timing.items()))
     if rs.get("gif", True):
         write_gif(frames_dir, out / "animation.gif")
     else:
         (out / "animation.gif").unlink(missing_ok=True)  # a GIF of other frames
-    panels = [np.asarray(Image.open(paths[i]).convert("RGB")) for i in (0, len(paths) // 2, len(paths) - 1)]
-    panels.append(_target_panel(renderer, arrays, cfg, settings))
+    write_mp4(frames_dir, out / "animation.mp4")
+    panels = []
+    for i in (0, len(paths) // 2, len(paths) - 1):
+        with Image.open(paths[i]) as im:
+            panels.append(np.asarray(on_white(im)))
+    panels.append(_target_panel(renderer, arrays, cfg, settings) if dim == 2 else
+                  _target_panel_3d(renderer, arrays, cfg, settings))
     save_png(sheet(panels, ["initial", "middle", "final", "target"]), out / "sheet.png")
     loss_plot(arrays["losses"], out / "loss.png")
     return paths
 
 
-def _option(name, value, stored, where):
-    """A render option checked: value, or the scene's stored value when value is None (0 is refused)."""
+def _render_3d(out, preview, cfg, meta, arrays, every, outline, should_stop, timing):
+    """Write each 3D frame's preview, particles and mesh into the .new folders; timing: seconds spent per part
+    (the re-simulation, the field, each output), summed over the frames."""
+    frames = FrameWriter(out, folder=NEW_DIR)
+    particles = FrameWriter(out, folder=f"{PARTICLES_DIR}.new", name=PLY_NAME, pattern=PLY_RE, save=write_particles)
+    meshes = FrameWriter(out, folder=f"{MESHES_DIR}.new", name=PLY_NAME, pattern=PLY_RE, save=write_mesh)
+    colors = arrays["colors"]
+    target = None if outline is None else outline / (cfg.density / len(outline) ** 3)
+    for k in ("simulation", "field", "preview", "particles", "mesh"):
+        timing[k] = 0.0
+
+    def timed(part, fn, *args):
+        t0 = time.perf_counter()
+        value = fn(*args)
+        timing[part] += time.perf_counter() - t0
+        return value
+
+    states = _states(cfg, meta, arrays, every)
+    while (state := timed("simulation", next, states, None)) is not None:
+        if should_stop is not None and should_stop():
+            raise Interrupted("rendering interrupted; the old frames are kept")
+        x = state["x"]
+        field, density = timed("field", frame_field, x, cfg.m_p, cfg.n_grid, cfg.density, colors)
+        timed("preview", lambda: frames.write(preview.render(field, x, colors, target)))
+        timed("particles", lambda: particles.write((x, colors, density)))
+        timed("mesh", lambda: meshes.write(surface(field)))
+
+
+def _colored(settings):
+    """Whether a 3D preview shows the particles' colours (a colour scene) rather than the mass colormap."""
+    return settings["loss"].get("kind") == "color" or settings["render"].get("mode") == "color"
+
+
+def _option(name, value, stored, where, modes=RENDER_MODES):
+    """A render option checked: value, or the scene's stored value when value is None (0 is refused); modes:
+    the modes of the run's dimension."""
     what = f"--{name} {value}" if value is not None else f"render.{name} = {stored} {where}"
     value = stored if value is None else value
     integer = isinstance(value, (int, np.integer)) and not isinstance(value, bool)
-    if name == "mode" and value not in RENDER_MODES:
-        raise RenderError(f"{what}: expected one of {', '.join(RENDER_MODES)}")
+    if name == "mode" and value not in modes:
+        raise RenderError(f"{what}: expected one of {', '.join(modes)}" +
+                          (" (a 3D run)" if modes == MODES_3D else ""))
     if name == "size" and not (integer and RENDER_SIZE_MIN <= value <= RENDER_SIZE_MAX):
         raise RenderError(f"{what}: expected an integer number of pixels between {RENDER_SIZE_MIN} and "
                           f"{RENDER_SIZE_MAX}")
@@ -104,7 +172,9 @@ def _option(name, value, stored, where):
 def _check_memory(cfg, n_particles, size, mode, target_res, what):
     """Refuse, before anything is allocated, a renderer that would not fit beside the re-simulation: within
     sim.max_memory_gb when set, else 90% of the memory free now (as memory.check_memory for the simulation)."""
-    need = estimate_bytes(cfg.n_grid, n_particles, size, mode, 8 if cfg.dtype == "f64" else 4, target_res)
+    word = 8 if cfg.dtype == "f64" else 4
+    need = (estimate_bytes(cfg.n_grid, n_particles, size, mode, word, target_res) if cfg.dim == 2 else
+            estimate_bytes_3d(cfg.n_grid, n_particles, size, mode, word, target_res))
     sim = memory.estimate_bytes(cfg, n_particles)
     limit, of = memory.limit(cfg)
     if limit is not None and need + sim > limit:
@@ -170,7 +240,22 @@ def _states(cfg, meta, arrays, every):
 def _target_panel(renderer, arrays, cfg, settings):
     """The target as the renderer shows the body: its sampled particles, or the position-loss targets."""
     if "target_points" in arrays:
-        pts = arrays["target_points"]
-        m_t = cfg.m_p * (len(arrays["final_x"]) / len(pts) if settings["scene"]["target_density"] == "match" else 1)
-        return renderer.render(pts, m_t, colors=arrays["target_colors"])
+        return renderer.render(arrays["target_points"], _target_mass(arrays, cfg, settings),
+                               colors=arrays["target_colors"])
     return renderer.render(arrays["target_x"], cfg.m_p, colors=arrays["colors"])
+
+
+def _target_mass(arrays, cfg, settings):
+    """The mass of a sampled target particle: the body's, or spread over the target's count ("match")."""
+    match = settings["scene"]["target_density"] == "match"
+    return cfg.m_p * (len(arrays["final_x"]) / len(arrays["target_points"]) if match else 1)
+
+
+def _target_panel_3d(preview, arrays, cfg, settings):
+    """The 3D target as the preview shows the body: its sampled particles (and colours) when the result holds
+    them; else (position targets) the particles' targets."""
+    if "target_points" in arrays:
+        pts, m_t, colors = arrays["target_points"], _target_mass(arrays, cfg, settings), arrays["target_colors"]
+    else:
+        pts, m_t, colors = arrays["target_x"], cfg.m_p, arrays["colors"]
+    return preview.render(mass_field(pts, m_t, cfg.n_grid, cfg.density, colors), pts, colors)

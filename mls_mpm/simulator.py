@@ -246,6 +246,11 @@ class Simulator:
         Allocates a second, grad-enabled copy of the fields on first call (refused first if it would not fit).
         """
         self._require_loss()
+        if self.dim == 3:
+            raise ConfigError("gradient_tape: ti.ad.Tape is the oracle of the 2D kernels only; in 3D the loop over "
+                              "the stencil's first axis is a runtime loop (a full 4x4x4 unroll takes many minutes "
+                              "to compile), which Taichi 1.7.4's autodiff differentiates wrongly: check a 3D "
+                              "gradient against central differences (mls-mpm check does)")
         controls = self._controls(controls)
         if self._tape_state is None:
             check_memory(self.cfg, self.n_particles, grids=loss_grid_shapes(self.loss),

@@ -61,12 +61,10 @@ def step_loops(s: ti.template(), f):
         ti.loop_config(block_dim=1)
         for lane in range(s.lanes):
             for p in range(lane * s.lane_chunk, ti.min((lane + 1) * s.lane_chunk, s.n_particles)):
-                check_particle(s, f, p)
-                p2g_particle(s, f, p, lane)
+                check_particle(s, f, p, p2g_particle(s, f, p, lane))
     else:
         for p in range(s.n_particles):
-            check_particle(s, f, p)
-            p2g_particle(s, f, p, 0)
+            check_particle(s, f, p, p2g_particle(s, f, p, 0))
     for I in ti.grouped(ti.ndrange(*s.grid_shape)):
         grid_node(s, f, I)
     for p in range(s.n_particles):

@@ -4,7 +4,8 @@ A particle whose stencil leaves the grid is skipped (never indexed outside it) a
 """
 import taichi as ti
 
-from .kernels import inside, node_N, offsets, stencil, weights
+from .config import STENCIL
+from .kernels import inside, join, node_N, slab_offsets, stencil, weights
 from .material import stress
 from .state import FAULT_LEFT_GRID, FAULT_NON_FINITE
 
@@ -48,16 +49,34 @@ def scatter_node(s: ti.template(), f, lane, I, dm, dp):
 
 @ti.func
 def p2g_particle(s: ti.template(), f, p, lane):
-    """Scatter particle p of step f onto its 4^dim nodes: m_i += N m_p (eq 15), p_i += N [m_p v_p (1 - dt gamma) + G_p dpos] (eq 16)."""
+    """Scatter particle p of step f onto its 4^dim nodes: m_i += N m_p (eq 15), p_i += N [m_p v_p (1 - dt gamma) + G_p dpos] (eq 16).
+
+    Returns G_p (zero for a particle whose stencil leaves the grid), which the step's check_particle tests, so
+    that the stress (an SVD in 3D) is evaluated once per particle and step.
+    """
+    G = ti.Matrix.zero(float, s.dim, s.dim)
     base, fx = stencil(s.x[f, p], s.inv_dx)
     if inside(base, s.n_grid):
         w, _ = weights(fx)
         G = affine_momentum(s, f, p, control_sum(s, f, p))
         mv = s.m_p * (1.0 - s.dt * s.gamma) * s.v[f, p]
-        for o in ti.static(offsets(s.dim)):
-            N = node_N(w, o)
-            dpos = (o - fx) * s.dx  # x_i - x_p
-            scatter_node(s, f, lane, base + o, N * s.m_p, N * (mv + G @ dpos))
+        if ti.static(s.dim == 2):  # the stencil's outer loop: see kernels.slab_offsets
+            for i0 in ti.static(range(STENCIL)):
+                p2g_slab(s, f, lane, base, fx, w, G, mv, i0)
+        else:
+            for i0 in range(STENCIL):
+                p2g_slab(s, f, lane, base, fx, w, G, mv, i0)
+    return G
+
+
+@ti.func
+def p2g_slab(s: ti.template(), f, lane, base, fx, w, G, mv, i0):
+    """The scatter of p2g_particle onto slab i0 of the stencil."""
+    for o2 in ti.static(slab_offsets(s.dim)):
+        o = join(i0, o2)
+        N = node_N(w, i0, o2)
+        dpos = (o - fx) * s.dx  # x_i - x_p
+        scatter_node(s, f, lane, base + o, N * s.m_p, N * (mv + G @ dpos))
 
 
 @ti.func
@@ -69,12 +88,12 @@ def g2p_particle(s: ti.template(), f, p):
         w, _ = weights(fx)
         v_new = ti.Vector.zero(float, s.dim)
         C_new = ti.Matrix.zero(float, s.dim, s.dim)
-        for o in ti.static(offsets(s.dim)):
-            N = node_N(w, o)
-            dpos = (o - fx) * s.dx
-            v_i = s.grid_v[f, base + o]
-            v_new += N * v_i  # eq 18
-            C_new += 3.0 * s.inv_dx * s.inv_dx * N * v_i.outer_product(dpos)  # eq 19
+        if ti.static(s.dim == 2):  # the stencil's outer loop: see kernels.slab_offsets
+            for i0 in ti.static(range(STENCIL)):
+                v_new, C_new = g2p_slab(s, f, base, fx, w, i0, v_new, C_new)
+        else:
+            for i0 in range(STENCIL):
+                v_new, C_new = g2p_slab(s, f, base, fx, w, i0, v_new, C_new)
         F_new = (ti.Matrix.identity(float, s.dim) + s.dt * C_new) @ control_sum(s, f, p)  # eq 20
         x_new = x + s.dt * v_new  # eq 21
         s.v[f + 1, p] = v_new
@@ -84,15 +103,27 @@ def g2p_particle(s: ti.template(), f, p):
 
 
 @ti.func
-def check_particle(s: ti.template(), f, p):
+def g2p_slab(s: ti.template(), f, base, fx, w, i0, v_new, C_new):
+    """The gather of g2p_particle from slab i0 of the stencil, added to v_new, C_new."""
+    for o2 in ti.static(slab_offsets(s.dim)):
+        o = join(i0, o2)
+        N = node_N(w, i0, o2)
+        dpos = (o - fx) * s.dx
+        v_i = s.grid_v[f, base + o]
+        v_new += N * v_i  # eq 18
+        C_new += 3.0 * s.inv_dx * s.inv_dx * N * v_i.outer_product(dpos)  # eq 19
+    return v_new, C_new
+
+
+@ti.func
+def check_particle(s: ti.template(), f, p, G):
     """Record particle p of step f if its stencil leaves the grid or its state is not finite.
 
-    Kept apart from p2g/g2p (which skip such a particle) so that those stay differentiable by Taichi.
+    G: the G_p that p2g_particle returned for step f < N_t (so that an overflowing control is named at its
+    source, the stress), or zero for the last step, which has no P2G. Kept apart from p2g/g2p (which skip such
+    a particle) so that those stay differentiable by Taichi.
     """
-    total = s.x[f, p].sum() + s.v[f, p].sum() + s.C[f, p].sum() + s.F[f, p].sum()
-    if f < s.steps:  # the stress of F + F_pc too, so an overflowing control is named at its source
-        Fs = control_sum(s, f, p)
-        total += Fs.sum() + affine_momentum(s, f, p, Fs).sum()
+    total = s.x[f, p].sum() + s.v[f, p].sum() + s.C[f, p].sum() + s.F[f, p].sum() + G.sum()
     if ti.math.isnan(total) or ti.math.isinf(total):  # NaN or Inf anywhere in the particle's state
         record_fault(s, FAULT_NON_FINITE, f, p)
     else:
@@ -118,4 +149,4 @@ def g2p(s: ti.template(), f: ti.i32):
 @ti.kernel
 def check_step(s: ti.template(), f: ti.i32):
     for p in range(s.n_particles):
-        check_particle(s, f, p)
+        check_particle(s, f, p, ti.Matrix.zero(float, s.dim, s.dim))

@@ -56,14 +56,19 @@ def max_rel_err(a, b, axis=-1):
 
 SCENE = dict(n_grid=32, steps=30, dt=1e-3, E=100.0, nu=0.2, density=1.0, gamma=2.0, gravity=(0.0, -9.8),
              boundary="slip", bound=3, stride=10, particles_per_cell=4, dtype="f64", arch="cpu")
+# its 3D twin: a 16^3 grid, 12 steps (controls every 4), 2 particles per cell volume (~270 in the ball of blob)
+SCENE_3D = {**SCENE, "dim": 3, "n_grid": 16, "steps": 12, "stride": 4, "particles_per_cell": 2,
+            "gravity": (0.0, -9.8, 0.0)}
 
 
 def scene_config(**changes):
-    """The small test scene: 32x32 grid, 30 steps of dt = 1e-3, E = 100, slip walls, gravity, light drag.
+    """The small test scene: 32x32 grid, 30 steps of dt = 1e-3, E = 100, slip walls, gravity, light drag; with
+    dim=3 its 3D twin SCENE_3D (16^3 grid, 12 steps).
 
-    Stable: dt = 1e-3 is a third of the CFL limit dx / sqrt((lam + 2 mu) / rho) ~ 3e-3 (asserted).
+    Stable: dt = 1e-3 is a third of the CFL limit dx / sqrt((lam + 2 mu) / rho) ~ 3e-3 (asserted; ~6e-3 in 3D).
     """
-    cfg = mls_mpm.SimConfig(**{**SCENE, **changes})
+    base = SCENE_3D if changes.get("dim") == 3 else SCENE
+    cfg = mls_mpm.SimConfig(**{**base, **changes})
     assert cfg.dt < 0.5 * cfg.cfl_dt, f"test scene dt = {cfg.dt} is not well below the CFL limit {cfg.cfl_dt}"
     return cfg
 
@@ -80,6 +85,22 @@ def blob(n_grid=32, center=(0.5, 0.5), radius=0.15, particles_per_cell=4, seed=0
     x += rng.uniform(-0.25, 0.25, x.shape) * dx / k
     keep = np.linalg.norm(x - np.asarray(center), axis=1) < radius
     return x[keep]
+
+
+def ball(n_grid=16, center=(0.5, 0.5, 0.5), radius=0.2, particles_per_cell=2, seed=0):
+    """A 3D ball of particles: particles_per_cell uniform random samples per cell volume (about 270 for the
+    defaults, the 3D twin of blob)."""
+    rng = np.random.default_rng(seed)
+    dx = 1.0 / n_grid
+    cells = np.stack(np.meshgrid(*[np.arange(n_grid)] * 3, indexing="ij"), -1).reshape(-1, 1, 3)
+    x = ((cells + rng.uniform(0.0, 1.0, (len(cells), particles_per_cell, 3))) * dx).reshape(-1, 3)
+    keep = np.linalg.norm(x - np.asarray(center), axis=1) < radius
+    return x[keep]
+
+
+def body(dim):
+    """The test body of the small scene of that dimension: blob() in 2D, ball() in 3D."""
+    return blob() if dim == 2 else ball()
 
 
 def random_controls(shape, scale=0.05, seed=1):

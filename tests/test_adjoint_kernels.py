@@ -5,7 +5,11 @@ L = sum_y w_y . y, a random linear functional of the kernel's outputs y, so the 
 the vector-Jacobian products of the kernel with w. The reverse kernel runs on a plain State holding the same
 inputs, with w put in the AdjointState as the upstream adjoint dL/dy. Every input adjoint must agree with the
 Tape to a symmetric relative error of at most 1e-8 (both are exact in exact arithmetic; float64 round-off
-through one kernel stays near 1e-14).
+through one kernel stays near 1e-14). The grid-operation test runs in 2D (16^2 grid) and in 3D (12^3 grid,
+the smallest grid with walls of 3 cells): one code path, two dimensions (SimConfig.dim). The kernels with a
+stencil loop are Taped in 2D only: in 3D their loop over the stencil's first axis is a runtime loop (see
+mls_mpm.kernels.slab_offsets), which Taichi 1.7.4's autodiff differentiates wrongly; tests/test_kernels3d.py
+checks their 3D twins against central differences instead.
 
 Reverse kernels accumulate (+=) into adjoints they share with other kernels, so those adjoints are
 prefilled with random values b and the test compares (result - b) with the Tape.
@@ -43,6 +47,13 @@ OUTSIDE = 5  # a particle whose stencil leaves the grid: forward and reverse ker
 # steps = 3, stride = 2: step 2 is a control step (control k = 1, exercising f // stride), step 1 is not.
 KERNEL_CFG = dict(n_grid=16, steps=3, dt=2e-3, E=400.0, nu=0.3, density=1.0, gamma=40.0, gravity=(0.3, -9.8),
                   bound=3, stride=2, particles_per_cell=4, dtype="f64", arch="cpu")
+# the 3D twin: a 12^3 grid, gravity with a z component so that every axis of the walls and eq 17 is exercised
+KERNEL_CFG_3D = {**KERNEL_CFG, "dim": 3, "n_grid": 12, "gravity": (0.3, -9.8, 0.7)}
+DIMS = [2, 3]
+
+
+def kernel_config(dim, **changes):
+    return SimConfig(**{**(KERNEL_CFG if dim == 2 else KERNEL_CFG_3D), **changes})
 CONTROL_STEP, PLAIN_STEP = 2, 1
 
 
@@ -51,22 +62,24 @@ CONTROL_STEP, PLAIN_STEP = 2, 1
 class Upstream:
     """Weights w of L = sum w . y over particle outputs (x, v, C, F) and grid outputs (m, p, v)."""
 
-    def __init__(self, n_particles, n_grid):
-        N, n = n_particles, n_grid
-        self.x = ti.Vector.field(2, ti.f64, shape=N)
-        self.v = ti.Vector.field(2, ti.f64, shape=N)
-        self.C = ti.Matrix.field(2, 2, ti.f64, shape=N)
-        self.F = ti.Matrix.field(2, 2, ti.f64, shape=N)
-        self.m = ti.field(ti.f64, shape=(n, n))
-        self.p = ti.Vector.field(2, ti.f64, shape=(n, n))
-        self.gv = ti.Vector.field(2, ti.f64, shape=(n, n))
+    def __init__(self, n_particles, n_grid, dim=2):
+        N, grid, d = n_particles, (n_grid,) * dim, dim
+        self.dim = d
+        self.x = ti.Vector.field(d, ti.f64, shape=N)
+        self.v = ti.Vector.field(d, ti.f64, shape=N)
+        self.C = ti.Matrix.field(d, d, ti.f64, shape=N)
+        self.F = ti.Matrix.field(d, d, ti.f64, shape=N)
+        self.m = ti.field(ti.f64, shape=grid)
+        self.p = ti.Vector.field(d, ti.f64, shape=grid)
+        self.gv = ti.Vector.field(d, ti.f64, shape=grid)
         self.np = {}
 
     def draw(self, rng, which):
         """Random normal weights for the outputs named in `which`, zero for the others."""
         for name in ("x", "v", "C", "F", "m", "p", "gv"):
             field = getattr(self, name)
-            shape = field.shape + (() if name == "m" else (2,) if name in ("x", "v", "p", "gv") else (2, 2))
+            d = self.dim
+            shape = field.shape + (() if name == "m" else (d,) if name in ("x", "v", "p", "gv") else (d, d))
             w = rng.standard_normal(shape) if name in which else np.zeros(shape)
             field.from_numpy(w)
             self.np[name] = w
@@ -82,9 +95,8 @@ def particle_functional(s: ti.template(), w: ti.template(), f: ti.i32):
 
 @ti.kernel
 def grid_functional(s: ti.template(), w: ti.template(), f: ti.i32):
-    for i, j in ti.ndrange(s.n_grid, s.n_grid):
-        s.loss[None] += (w.m[i, j] * s.grid_m[f, i, j] + w.p[i, j].dot(s.grid_p[f, i, j])
-                         + w.gv[i, j].dot(s.grid_v[f, i, j]))
+    for I in ti.grouped(ti.ndrange(*s.grid_shape)):
+        s.loss[None] += (w.m[I] * s.grid_m[f, I] + w.p[I].dot(s.grid_p[f, I]) + w.gv[I].dot(s.grid_v[f, I]))
 
 
 PARTICLE_FIELDS = ("x", "v", "C", "F")
@@ -98,8 +110,8 @@ class Pair:
         self.t = State(cfg, n_particles, needs_grad=True, **state_kw)
         self.s = State(cfg, n_particles, **state_kw)
         self.a = AdjointState(self.s, ti.f64)
-        self.upstream = Upstream(n_particles, cfg.n_grid)
-        self.N, self.n = n_particles, cfg.n_grid
+        self.upstream = Upstream(n_particles, cfg.n_grid, cfg.dim)
+        self.N, self.n, self.d = n_particles, cfg.n_grid, cfg.dim
 
     def put(self, name, value):
         getattr(self.t, name).from_numpy(value)
@@ -107,18 +119,19 @@ class Pair:
 
     def randomize(self, rng):
         """Random inputs at every step: x inside the grid (one particle outside), v, C ~ O(1), F near I."""
-        T1, N, n, K = self.cfg.steps + 1, self.N, self.n, self.cfg.n_controls
+        T1, N, n, K, d = self.cfg.steps + 1, self.N, self.n, self.cfg.n_controls, self.d
+        grid = (n,) * d
         lo, hi = 1.5 / n, 1.0 - 2.5 / n
-        x = rng.uniform(lo, hi, (T1, N, 2))
-        x[:, OUTSIDE] = (0.3 / n, 0.5)  # base = floor(x / dx) - 1 = -1: the stencil leaves the grid
+        x = rng.uniform(lo, hi, (T1, N, d))
+        x[:, OUTSIDE] = (0.3 / n,) + (0.5,) * (d - 1)  # base = floor(x / dx) - 1 = -1: the stencil leaves the grid
         self.put("x", x)
-        self.put("v", rng.standard_normal((T1, N, 2)))
-        self.put("C", 3.0 * rng.standard_normal((T1, N, 2, 2)))
-        self.put("F", np.eye(2) + 0.2 * rng.standard_normal((T1, N, 2, 2)))
-        self.put("F_pc", 0.1 * rng.standard_normal((K, N, 2, 2)))
-        self.put("grid_m", self.cfg.m_p * rng.uniform(0.1, 3.0, (T1 - 1, n, n)))
-        self.put("grid_p", self.cfg.m_p * rng.standard_normal((T1 - 1, n, n, 2)))
-        self.put("grid_v", rng.standard_normal((T1 - 1, n, n, 2)))
+        self.put("v", rng.standard_normal((T1, N, d)))
+        self.put("C", 3.0 * rng.standard_normal((T1, N, d, d)))
+        self.put("F", np.eye(d) + 0.2 * rng.standard_normal((T1, N, d, d)))
+        self.put("F_pc", 0.1 * rng.standard_normal((K, N, d, d)))
+        self.put("grid_m", self.cfg.m_p * rng.uniform(0.1, 3.0, (T1 - 1,) + grid))
+        self.put("grid_p", self.cfg.m_p * rng.standard_normal((T1 - 1,) + grid + (d,)))
+        self.put("grid_v", rng.standard_normal((T1 - 1,) + grid + (d,)))
         self.put("loss", np.zeros(()))
 
     def prefill(self, rng, names, like):
@@ -145,19 +158,22 @@ def tape_grads(t, names, index):
 # ------------------------------------------------------------------ fixtures
 @pytest.fixture(scope="module")
 def pair():
-    return Pair(SimConfig(**KERNEL_CFG))
+    return Pair(kernel_config(2))
 
 
-@pytest.fixture(scope="module", params=["slip", "sticky"])
+@pytest.fixture(scope="module", params=[(d, b) for d in DIMS for b in ("slip", "sticky")],
+                ids=["2d-slip", "2d-sticky", "3d-slip", "3d-sticky"])
 def grid_pair(request):
-    return Pair(SimConfig(**{**KERNEL_CFG, "boundary": request.param}), n_particles=8)
+    dim, boundary = request.param
+    return Pair(kernel_config(dim, boundary=boundary), n_particles=8)
 
 
 # ------------------------------------------------------------------ reverse G2P
 @pytest.mark.parametrize("f", [CONTROL_STEP, PLAIN_STEP])
 @pytest.mark.parametrize("which", ["x", "v", "C", "F", "x v C F"])
 def test_g2p_reverse_matches_tape(pair, f, which):
-    """g2p_reverse (g2p_particle_reverse on every particle; eq 47-48, 57 first term, 66-69) vs Tape on g2p
+    """g2p_reverse (g2p_particle_reverse on every particle, g2p_slab_reverse on each slab of its stencil; eq 47-48,
+    57 first term, 66-69) vs Tape on g2p
     (eq 18-21): rel err <= 1e-8.
 
     dL/dv_i^f, dL/dx_p^f and dL/d(F + F_pc)_p^f from dL/d(x, v, C, F)^{f+1}; each output alone, then all.
@@ -175,9 +191,10 @@ def test_g2p_reverse_matches_tape(pair, f, which):
 
     g2p(s, f)  # the reverse kernel reads C^{f+1} (eq 57)
     src, dst = (f + 1) % 2, f % 2
+    d = pair.d
     b = pair.prefill(rng, ("adj_x", "adj_v", "adj_C", "adj_F", "adj_grid_v"),
-                     {"adj_x": np.tile(tape["x"], (2, 1, 1)), "adj_v": np.ones((2, pair.N, 2)),
-                      "adj_C": np.ones((2, pair.N, 2, 2)), "adj_F": np.tile(tape["F"], (2, 1, 1, 1)),
+                     {"adj_x": np.tile(tape["x"], (2, 1, 1)), "adj_v": np.ones((2, pair.N, d)),
+                      "adj_C": np.ones((2, pair.N, d, d)), "adj_F": np.tile(tape["F"], (2, 1, 1, 1)),
                       "adj_grid_v": tape["grid_v"]})
     for name in PARTICLE_FIELDS:  # slot src holds the upstream dL/d(x, v, C, F)^{f+1} = w
         b["adj_" + name][src] = w.np[name]
@@ -206,14 +223,14 @@ def test_g2p_reverse_matches_tape(pair, f, which):
 def grid_inputs(cfg, rng):
     """Grid mass with every case of the eq 17 guard: ordinary nodes, empty (0), and nearly empty (5e-11, 3e-10 m_p);
     grid momentum with velocities O(1), and small ones whose sign gravity flips (kind 3)."""
-    n, m_p = cfg.n_grid, cfg.m_p
+    grid, m_p = (cfg.n_grid,) * cfg.dim, cfg.m_p
     tiny = 1e-10 * m_p
-    m = m_p * rng.uniform(0.05, 3.0, (n, n))
-    kind = rng.integers(0, 8, (n, n))
+    m = m_p * rng.uniform(0.05, 3.0, grid)
+    kind = rng.integers(0, 8, grid)
     m[kind == 0] = 0.0
     m[kind == 1] = 0.5 * tiny
     m[kind == 2] = 3.0 * tiny
-    v = 2.0 * rng.standard_normal((n, n, 2))  # p = m v keeps node velocities O(1) at every mass
+    v = 2.0 * rng.standard_normal(grid + (cfg.dim,))  # p = m v keeps node velocities O(1) at every mass
     # nodes where gravity flips the sign of v: p/m against g, |p/m| < dt |g|, so the wall mask must be taken
     # on p/m + dt g (the velocity the forward pass masks), not on p/m
     flip = kind == 3
@@ -226,13 +243,13 @@ def test_grid_op_reverse_matches_tape(grid_pair, f):
     """grid_op_reverse (grid_op_node_reverse on every node; eq 49-53, gravity, walls) vs Tape on grid_op (eq 17):
     per-node rel err <= 1e-8.
 
-    Covers wall-zone nodes (bound = 3 of 16 per side; slip masks one component, sticky both), empty nodes
+    Covers wall-zone nodes (bound = 3 cells per side; slip masks one component, sticky all), empty nodes
     (divisor m_eps alone, checked in closed form too) and nodes of mass 5e-11 and 3e-10 m_p (adjoints ~ 1/m,
     so the error is measured node by node rather than by a norm over the grid).
     """
     pair = grid_pair
     cfg = pair.cfg
-    rng = np.random.default_rng(f + (cfg.boundary == "sticky"))
+    rng = np.random.default_rng(f + (cfg.boundary == "sticky") + 10 * (cfg.dim == 3))
     pair.randomize(rng)
     m, p, kind = grid_inputs(cfg, rng)
     T = cfg.steps
@@ -262,8 +279,8 @@ def test_grid_op_reverse_matches_tape(grid_pair, f):
     assert rel_err(adj_m[empty], cfg.dt * g_masked[empty] @ np.asarray(cfg.gravity) / m_eps) <= TOL
     assert np.all(np.isfinite(adj_p)) and np.any(adj_p[empty] != 0.0)  # nothing is cut, nothing overflows
     b, n = cfg.bound, cfg.n_grid
-    wall = np.zeros((n, n), bool)
-    wall[:b, :] = wall[n - b:, :] = wall[:, :b] = wall[:, n - b:] = True
+    index = np.indices(m.shape)  # a node is in the wall zone when any of its indices is
+    wall = np.any((index < b) | (index >= n - b), axis=0)
     light = (kind == 2) & ~wall
     assert np.any(light) and np.all(np.abs(adj_m[light]) > 0.0)  # nearly empty nodes pass gradient back
     # the walls really cut gradients in this test: some wall-zone component is zero in both
@@ -279,7 +296,8 @@ def test_grid_op_reverse_matches_tape(grid_pair, f):
 @pytest.mark.parametrize("f", [CONTROL_STEP, PLAIN_STEP])
 @pytest.mark.parametrize("which", ["m", "p", "m p"])
 def test_p2g_reverse_matches_tape(pair, f, which):
-    """p2g_reverse (p2g_particle_reverse on every particle; eq 54-65, 71) vs Tape on p2g (eq 14-16, drag
+    """p2g_reverse (p2g_particle_reverse on every particle, p2g_slab_reverse on each slab of its stencil; eq 54-65,
+    71) vs Tape on p2g (eq 14-16, drag
     gamma dt = 0.08): rel err <= 1e-8.
 
     dL/d(x, v, C, F)_p^f from dL/dm_i, dL/dp_i; at a control step (f = 2, k = 1) also dL/dF_pc^k, which
@@ -341,7 +359,7 @@ class StepPair(Pair):
 
 @pytest.fixture(scope="module")
 def step_pairs():
-    cfg = SimConfig(**KERNEL_CFG)
+    cfg = kernel_config(2)
     return {"parallel": StepPair(cfg, LANES), "serial": StepPair(cfg, 0)}
 
 
@@ -523,13 +541,18 @@ def test_stress_reverse_singular_rotation_is_guarded():
 
 
 # ------------------------------------------------------------------ loss seeds
-def loss_specs(rng):
-    """Loss grids of every kind: mass 16 and 8 with weights and a penalty grid alpha (eq 11, 72), log mass
+# the fine and coarse loss grids of the loss-seed tests: 16 and 8 per axis in 2D, 8 and 4 in 3D
+LOSS_RES = {2: (16, 8), 3: (8, 4)}
+
+
+def loss_specs(rng, dim=2):
+    """Loss grids of every kind: mass fine and coarse with weights and a penalty grid alpha (eq 11, 72), log mass
     with alpha, color (eq 13; ColorLoss takes no alpha)."""
-    t16 = rng.uniform(0.0, 2.0, (16, 16)) * 1e-3
-    t8 = rng.uniform(0.0, 2.0, (8, 8)) * 4e-3
-    a16 = rng.uniform(1.0, 4.0, (16, 16))
-    c16 = rng.uniform(0.0, 1.0, (16, 16, 3)) * 1e-3
+    hi, lo = LOSS_RES[dim]
+    t16 = rng.uniform(0.0, 2.0, (hi,) * dim) * 1e-3
+    t8 = rng.uniform(0.0, 2.0, (lo,) * dim) * 4e-3
+    a16 = rng.uniform(1.0, 4.0, (hi,) * dim)
+    c16 = rng.uniform(0.0, 1.0, (hi,) * dim + (3,)) * 1e-3
     colors = rng.uniform(0.0, 1.0, (N_PARTICLES, 3))
     grids = (MassLoss([t16, t8], weights=[2.0, 0.5], alpha=[a16, None]).grids
              + MassLoss([t16], alpha=[a16], log=True).grids
@@ -537,15 +560,18 @@ def loss_specs(rng):
     return grids, colors
 
 
-LOSS_GRIDS = ["mass 16 alpha w=2", "mass 8 w=0.5", "log mass 16 alpha", "color 16 w=1.5"]
+LOSS_GRIDS = ["mass fine alpha w=2", "mass coarse w=0.5", "log mass fine alpha", "color fine w=1.5"]
+EDGE_X = {2: [(0.04, 0.5), (0.97, 0.2), (0.5, 0.03), (0.96, 0.98)],
+          3: [(0.04, 0.5, 0.5), (0.97, 0.2, 0.6), (0.5, 0.03, 0.4), (0.96, 0.98, 0.97)]}
 
 
 @pytest.fixture(scope="module")
 def loss_pair():
+    dim = 2
     rng = np.random.default_rng(21)
-    grids, colors = loss_specs(rng)
-    pair = Pair(SimConfig(**KERNEL_CFG), loss_grids=grids, position_loss=True, colors=True)
-    target_x = rng.uniform(0.2, 0.8, (N_PARTICLES, 2))
+    grids, colors = loss_specs(rng, dim)
+    pair = Pair(kernel_config(dim), loss_grids=grids, position_loss=True, colors=True)
+    target_x = rng.uniform(0.2, 0.8, (N_PARTICLES, dim))
     for st in (pair.t, pair.s):
         for g, spec in zip(st.loss_grids, grids):
             g.target.from_numpy(spec.target)
@@ -556,7 +582,7 @@ def loss_pair():
     pair.randomize(rng)
     # a few particles near the domain edges, so loss-grid nodes beyond the domain are dropped (splat)
     x = pair.s.x.to_numpy()
-    x[:, :4] = [(0.04, 0.5), (0.97, 0.2), (0.5, 0.03), (0.96, 0.98)]
+    x[:, :4] = EDGE_X[dim]
     pair.put("x", x)
     return pair
 
@@ -623,9 +649,9 @@ def test_seed_sums_every_loss_and_zeroes_the_rest(loss_pair):
         g.m.fill(0.0)
         losses.splat(s, g, f)
     pair.prefill(np.random.default_rng(6), ["adj_x", "adj_v", "adj_C", "adj_F", "adj_grid_v"],
-                     {"adj_x": np.ones((2, pair.N, 2)), "adj_v": np.ones((2, pair.N, 2)),
-                      "adj_C": np.ones((2, pair.N, 2, 2)), "adj_F": np.ones((2, pair.N, 2, 2)),
-                      "adj_grid_v": np.ones((pair.n, pair.n, 2))})
+                     {"adj_x": np.ones((2, pair.N, pair.d)), "adj_v": np.ones((2, pair.N, pair.d)),
+                      "adj_C": np.ones((2, pair.N, pair.d, pair.d)), "adj_F": np.ones((2, pair.N, pair.d, pair.d)),
+                      "adj_grid_v": np.ones((pair.n,) * pair.d + (pair.d,))})
     evaluate_reverse(s, a, f)
     slot = f % 2
     assert rel_err(a.adj_x.to_numpy()[slot], tape_x) <= TOL
@@ -636,21 +662,24 @@ def test_seed_sums_every_loss_and_zeroes_the_rest(loss_pair):
 
 
 # ------------------------------------------------------------------ the optimal-transport loss seed
-def ot_specs(rng):
-    """OTLoss grids: a balanced transport term on 16 (w = 2) beside eq 11 on 8 (transport weight 0, mass weight 3),
-    and an unbalanced transport term on 8 (reach 0.3, w = 0.5)."""
-    t16 = rng.uniform(0.0, 2.0, (16, 16)) * 1e-3
-    t8 = rng.uniform(0.0, 2.0, (8, 8)) * 4e-3
+def ot_specs(rng, dim=2):
+    """OTLoss grids: a balanced transport term on the fine grid (w = 2) beside eq 11 on the coarse one (transport
+    weight 0, mass weight 3), and an unbalanced transport term on the coarse one (reach 0.3, w = 0.5)."""
+    hi, lo = LOSS_RES[dim]
+    t16 = rng.uniform(0.0, 2.0, (hi,) * dim) * 1e-3
+    t8 = rng.uniform(0.0, 2.0, (lo,) * dim) * 4e-3
     return (OTLoss([t16, t8], weights=[2.0, 0.0], mass_weights=[0.0, 3.0], blur=1.5).grids
             + OTLoss([t8], weights=[0.5], blur=1.0, reach=0.3).grids)
 
 
 @pytest.fixture(scope="module")
 def ot_pair():
+    dim = 2
     rng = np.random.default_rng(31)
-    specs = ot_specs(rng)
-    assert [(g.kind, g.res) for g in specs] == [("ot", 16), ("mass", 8), ("ot", 8)]
-    pair = Pair(SimConfig(**KERNEL_CFG), loss_grids=specs)
+    specs = ot_specs(rng, dim)
+    hi, lo = LOSS_RES[dim]
+    assert [(g.kind, g.res) for g in specs] == [("ot", hi), ("mass", lo), ("ot", lo)]
+    pair = Pair(kernel_config(dim), loss_grids=specs)
     for st in (pair.t, pair.s):
         upload_loss(st, SimpleNamespace(grids=specs))
     pair.randomize(rng)
@@ -658,7 +687,7 @@ def ot_pair():
     return pair
 
 
-@pytest.mark.parametrize("gi", [0, 2], ids=["ot 16 w=2", "ot 8 reach=0.3 w=0.5"])
+@pytest.mark.parametrize("gi", [0, 2], ids=["ot fine w=2", "ot coarse reach=0.3 w=0.5"])
 def test_ot_loss_seed_matches_tape(ot_pair, gi):
     """ot_loss_reverse (dL/dm_i = the seed w dS/dm_i that ot_loss wrote) and splat_reverse vs Tape on splat +
     seed_loss (sum_i seed_i m_i, the Tape's linear stand-in, with the seed ot_loss writes in the grad State):

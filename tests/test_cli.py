@@ -101,7 +101,7 @@ def test_parse_check_render_bench():
     (["run", "s.toml", "--arch", "tpu"], "run: argument --arch: invalid choice: 'tpu'"),
     (["run", "s.toml", "--sett", "sim.steps=5"], "unrecognized arguments: --sett"),
     (["render", "d", "--mode", "wireframe"], "render: argument --mode: invalid choice: 'wireframe' (choose from "
-                                             "'mass', 'color', 'particles')"),
+                                             "'mass', 'color', 'particles', 'surface', 'volume')"),
     (["render", "d", "--size", "big"], "render: argument --size: expected an integer from 16 to 8192 pixels, "
                                        "got 'big'"),
     (["render", "d", "--size", "0"], "render: argument --size: expected an integer from 16 to 8192 pixels, got '0'"),

@@ -6,16 +6,19 @@ import taichi as ti
 from scipy.linalg import polar
 
 import mls_mpm
-from conftest import blob, random_controls, rel_err, scene_config
+from conftest import blob, body, random_controls, rel_err, scene_config
 from mls_mpm.material import stress
 
 pytestmark = pytest.mark.usefixtures("taichi_f64_module")
 
 
-def rigid_velocity(x, omega=1.0, u=(0.3, -0.2), center=(0.5, 0.5)):
-    """v = u + omega e_z x (x - center): a translation plus a rotation."""
-    r = x - np.asarray(center)
-    return np.asarray(u) + omega * np.stack([-r[:, 1], r[:, 0]], axis=1)
+def rigid_velocity(x, omega=1.0, u=(0.3, -0.2, 0.1), center=(0.5, 0.5, 0.5)):
+    """v = u + omega e_z x (x - center): a translation plus a rotation about z (2D: the first two axes)."""
+    d = x.shape[1]
+    r = x - np.asarray(center[:d])
+    spin = np.zeros_like(x)
+    spin[:, 0], spin[:, 1] = -r[:, 1], r[:, 0]
+    return np.asarray(u[:d]) + omega * spin
 
 
 def make_sim(cfg, x0):
@@ -29,18 +32,21 @@ def make_sim(cfg, x0):
     return sim
 
 
-@pytest.fixture(scope="module", params=["serial", "parallel"])
+@pytest.fixture(scope="module", params=[(2, "serial"), (2, "parallel"), (3, "parallel")],
+                ids=["2d-serial", "2d-parallel", "3d-parallel"])
 def free_sim(request):
     """No gravity, no drag, far from the walls: nothing external acts (walls start 3 cells from the edge; the
-    disk spans [0.35, 0.65] and moves < 0.02 in 30 steps). Both schedules."""
-    cfg = scene_config(gravity=(0.0, 0.0), gamma=0.0, schedule=request.param)
-    return make_sim(cfg, blob())
+    disk spans [0.35, 0.65] and moves < 0.02 in 30 steps; the 3D ball [0.3, 0.7], 12 steps). Both schedules in
+    2D; in 3D the parallel one (the serial one runs the same per-particle and per-node bodies)."""
+    dim, schedule = request.param
+    cfg = scene_config(dim=dim, gravity=(0.0,) * dim, gamma=0.0, schedule=schedule)
+    return make_sim(cfg, body(dim))
 
 
 def test_grid_mass_equals_particle_mass(free_sim):
     """sum_i m_i^n = sum_p m_p = N m_p at every step (eq 15; the B-spline weights sum to 1): rel err <= 1e-13."""
     sim = free_sim
-    x0 = blob()
+    x0 = body(sim.dim)
     sim.set_initial(x0, v=rigid_velocity(x0))
     sim.forward(random_controls(sim.control_shape, 0.05, seed=4))
     total = sim.n_particles * sim.cfg.m_p
@@ -57,7 +63,7 @@ def test_momentum_is_conserved(free_sim):
     sum_i m_i v_i^n (eq 17). Internal forces are large here: random controls of size 0.05 and a spinning body.
     Tolerance: 1e-12 of sum_p m_p |v_p|."""
     sim = free_sim
-    x0 = blob()
+    x0 = body(sim.dim)
     sim.set_initial(x0, v=rigid_velocity(x0))
     sim.forward(random_controls(sim.control_shape, 0.05, seed=5))
     m_p, T = sim.cfg.m_p, sim.cfg.steps
@@ -67,13 +73,14 @@ def test_momentum_is_conserved(free_sim):
     grid_p = sim.fields.grid_p.to_numpy()
     grid_v = sim.fields.grid_v.to_numpy()
     moved = 0.0
+    nodes = tuple(range(sim.dim))  # the grid axes
     for f in range(T + 1):
         v = sim.state(f)["v"]
         P = m_p * v.sum(axis=0)
         assert np.linalg.norm(P - P0) <= 1e-12 * scale, f
         if f < T:
-            assert np.linalg.norm(grid_p[f].sum(axis=(0, 1)) - P) <= 1e-12 * scale, f
-            assert np.linalg.norm((grid_m[f][..., None] * grid_v[f]).sum(axis=(0, 1)) - P) <= 1e-12 * scale, f
+            assert np.linalg.norm(grid_p[f].sum(axis=nodes) - P) <= 1e-12 * scale, f
+            assert np.linalg.norm((grid_m[f][..., None] * grid_v[f]).sum(axis=nodes) - P) <= 1e-12 * scale, f
         moved = max(moved, np.abs(v - sim.state(0)["v"]).max())
     assert moved > 0.1  # the velocities did change: the conservation is not trivial
     x = sim.state(T)["x"]
@@ -85,26 +92,28 @@ def test_body_at_rest_stays_at_rest(free_sim):
     """F = I, v = 0, C = 0, zero controls, no gravity: P(I) = 0 (eq 9) so nothing moves: x^n = x^0 and
     v^n = 0 to 1e-12 at every step."""
     sim = free_sim
-    x0 = blob()
+    x0 = body(sim.dim)
     sim.set_initial(x0)
     sim.forward(sim.zero_controls())
     for f in (1, sim.cfg.steps // 2, sim.cfg.steps):
         st = sim.state(f)
         assert np.abs(st["x"] - x0).max() <= 1e-12
         assert np.abs(st["v"]).max() <= 1e-12
-        assert np.abs(st["F"] - np.eye(2)).max() <= 1e-12
+        assert np.abs(st["F"] - np.eye(sim.dim)).max() <= 1e-12
 
 
-def test_free_fall_with_drag():
+@pytest.mark.parametrize("dim", [2, 3], ids=["2d", "3d"])
+def test_free_fall_with_drag(dim):
     """F = I, zero controls, gravity g, drag gamma: the body falls as one, every particle exactly as
     v^{n+1} = (1 - dt gamma) v^n + dt g (eq 16-18 plus gravity), x^{n+1} = x^n + dt v^{n+1} (eq 21),
-    with C = 0 and F = I (eq 19-20). Tolerance: 1e-12 absolute (velocities ~0.3, positions ~0.5)."""
-    cfg = scene_config(gamma=5.0, gravity=(1.5, -9.8))
-    x0 = blob()
+    with C = 0 and F = I (eq 19-20). Tolerance: 1e-12 absolute (velocities ~0.3, positions ~0.5); in 3D
+    gravity has a component along every axis (the 12 steps reach a speed of ~0.1)."""
+    cfg = scene_config(dim=dim, gamma=5.0, gravity=(1.5, -9.8, 0.7)[:dim])
+    x0 = body(dim)
     sim = mls_mpm.Simulator(cfg, x0)
     sim.forward(sim.zero_controls())
     g = np.asarray(cfg.gravity)
-    v = np.zeros(2)
+    v = np.zeros(dim)
     x = x0.copy()
     for f in range(1, cfg.steps + 1):
         v = (1.0 - cfg.dt * cfg.gamma) * v + cfg.dt * g
@@ -113,8 +122,8 @@ def test_free_fall_with_drag():
         assert np.abs(st["v"] - v).max() <= 1e-12, f
         assert np.abs(st["x"] - x).max() <= 1e-12, f
         assert np.abs(st["C"]).max() <= 1e-10, f
-        assert np.abs(st["F"] - np.eye(2)).max() <= 1e-12, f
-    assert np.linalg.norm(v) > 0.2
+        assert np.abs(st["F"] - np.eye(dim)).max() <= 1e-12, f
+    assert np.linalg.norm(v) > 0.1
 
 
 # ------------------------------------------------------------------ one step against a numpy transcription
@@ -269,12 +278,13 @@ def test_nan_control_raises(free_sim):
     """A NaN in F_pc is refused before any step runs: ValueError naming the control (and its step) and the
     particle."""
     c = free_sim.zero_controls()
+    s = free_sim.cfg.stride
     c[1, 5, 0, 1] = np.nan
-    with pytest.raises(ValueError, match=r"control 1 \(step 10\), particle 5 holds NaN"):
+    with pytest.raises(ValueError, match=rf"control 1 \(step {s}\), particle 5 holds NaN"):
         free_sim.forward(c)
     c[1, 5, 0, 1] = 0.0
     c[2, 0, 1, 1] = np.inf
-    with pytest.raises(ValueError, match=r"control 2 \(step 20\), particle 0 holds NaN or Inf"):
+    with pytest.raises(ValueError, match=rf"control 2 \(step {2 * s}\), particle 0 holds NaN or Inf"):
         free_sim.forward(c)
 
 
@@ -316,3 +326,46 @@ def test_config_accepts_the_limits():
     with pytest.raises(mls_mpm.ConfigError, match=rf"^threads = {MAX_THREADS + 1}: expected an integer in "
                                                   rf"\[0, {MAX_THREADS}\]$"):
         mls_mpm.SimConfig(threads=MAX_THREADS + 1)
+
+
+def test_extruded_shape_matches_2d():
+    """A 2D disk extruded along z into a slab of 23 particle layers one cell apart, run in 3D with each layer
+    carrying its 2D particle's control (blockdiag(F_pc, 0)), gravity in the xy plane and drag, matches the 2D run
+    of the disk on the slab's middle layer: x, y, v, C, F of the 2D run to rel err 1e-12 at steps 1 and 2.
+
+    Why it must: layers spaced dx apart sum the cubic B-spline to 1 along z (partition of unity) and reproduce
+    linear functions, so away from the slab's ends every 3D node holds dx times the 2D node's mass and momentum,
+    and the 3D stress of blockdiag(F, 1) is the 2D stress in its xy block (the cofactor's xy block is the 2D
+    cofactor). The free faces at the ends (11 cells from the middle) reach it through at most 4 cells of
+    stencil a step (P2G 2, G2P 2), so the first two steps are exact to round-off; at step 4 they are not
+    (asserted, so the slab is long enough to matter and the middle layer really is the one compared).
+    """
+    steps, stride, n = 4, 2, 32
+    cfg2 = scene_config(n_grid=n, steps=steps, stride=stride, schedule="serial")
+    cfg3 = scene_config(dim=3, n_grid=n, steps=steps, stride=stride, particles_per_cell=1,
+                        gravity=(0.0, -9.8, 0.0), schedule="parallel")
+    x2 = blob(n_grid=n)
+    N2 = len(x2)
+    layers = (4.5 + np.arange(23)) / n
+    middle = 11
+    x3 = np.concatenate([np.column_stack([x2, np.full(N2, z)]) for z in layers])
+    c2 = random_controls((cfg2.n_controls, N2, 2, 2), 0.05, seed=9)
+    c3 = np.zeros((cfg3.n_controls, len(x3), 3, 3))
+    c3[:, :, :2, :2] = np.tile(c2, (1, len(layers), 1, 1))
+    v2 = rigid_velocity(x2, u=(0.3, -0.2))
+    sim2, sim3 = mls_mpm.Simulator(cfg2, x2), mls_mpm.Simulator(cfg3, x3)
+    sim2.set_initial(x2, v=v2)
+    sim3.set_initial(x3, v=np.column_stack([np.tile(v2, (len(layers), 1)), np.zeros(len(x3))]))
+    sim2.forward(c2)
+    sim3.forward(c3)
+    mid = slice(middle * N2, (middle + 1) * N2)
+    errors = []
+    for f in range(1, steps + 1):
+        a, b = sim2.state(f), sim3.state(f)
+        err = max(rel_err(b["x"][mid, :2], a["x"]), rel_err(b["v"][mid, :2], a["v"]),
+                  rel_err(b["C"][mid, :2, :2], a["C"]), rel_err(b["F"][mid, :2, :2], a["F"]))
+        errors.append(err)
+        if f <= 2:
+            assert err <= 1e-12, (f, err)
+            assert np.abs(b["x"][mid, 2] - layers[middle]).max() <= 1e-14  # no motion along z in the middle
+    assert errors[-1] > 1e-10, errors  # the ends have reached the middle by step 4

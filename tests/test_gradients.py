@@ -1,7 +1,10 @@
 """Whole-trajectory gradients dL/dF_pc (thesis section 6, eq 41-71) of a short simulation.
 
 Scene (conftest.scene_config): 32x32 grid, ~290 particles in a disk, 30 steps of dt = 1e-3, stride 10
-(K = 3 controls), gravity, slip walls (never reached), drag gamma = 2, random controls of size 0.05.
+(K = 3 controls), gravity, slip walls (never reached), drag gamma = 2, random controls of size 0.05. Its 3D
+twin (the tests parametrized by dim): a 16^3 grid, ~270 particles in a ball, 12 steps, stride 4 (K = 3),
+the loss grids halved (16 and 8 per axis), the same losses, tolerances and checks, except the Tape, which
+differentiates the 2D kernels only (Simulator.gradient_tape says why).
 
 Tolerances:
 - hand-written reverse pass vs ti.ad.Tape on the same forward kernels: rel err <= 1e-6 (both exact up to
@@ -18,7 +21,7 @@ import numpy as np
 import pytest
 
 import mls_mpm
-from conftest import blob, random_controls, random_unit, rel_err, scene_config
+from conftest import blob, body, random_controls, random_unit, rel_err, scene_config
 from mls_mpm import ot
 
 pytestmark = pytest.mark.usefixtures("taichi_f64_module")
@@ -31,53 +34,61 @@ ROOT = Path(__file__).resolve().parents[1]
 
 # ------------------------------------------------------------------ problems
 def disk_mass(res, center, radius, density=1.0):
-    """Target node masses of a uniform disk on a res x res loss grid (node [i, j] at (i, j) / res)."""
+    """Target node masses of a uniform disk (2D) or ball (3D: a center of three numbers) on a loss grid of res
+    nodes per axis (node [i, j(, k)] at (i, j(, k)) / res)."""
     h = 1.0 / res
-    i, j = np.meshgrid(np.arange(res), np.arange(res), indexing="ij")
-    r = np.hypot(i * h - center[0], j * h - center[1])
+    dim = len(center)
+    nodes = np.moveaxis(np.indices((res,) * dim) * h, 0, -1)
+    r = np.linalg.norm(nodes - np.asarray(center), axis=-1)
     inside = np.clip((radius - r) / h + 0.5, 0.0, 1.0)  # soft edge, one cell wide
-    return density * h * h * inside
+    return density * h ** dim * inside
 
 
-def make_problem(kind, schedule="auto"):
-    cfg = scene_config(schedule=schedule)
-    x0 = blob()
+def ramp(res, dim):
+    """A colour ramp over the loss grid, turned by 90 degrees from the body's (x, y, 1 - x): (j, i, 1/2) / res."""
+    i = np.indices((res,) * dim) / res
+    return np.stack([i[1], i[0], 0.5 + 0 * i[0]], axis=-1)
+
+
+def make_problem(kind, schedule="auto", dim=2):
+    cfg = scene_config(schedule=schedule, dim=dim)
+    x0 = body(dim)
     N = len(x0)
-    center, radius = (0.53, 0.47), 0.13
+    fine, coarse = (32, 16) if dim == 2 else (16, 8)  # the loss grids
+    z = () if dim == 2 else (0.5,)  # the 3D problems: the 2D ones in the middle plane z = 0.5
+    center, radius = (0.53, 0.47) + z, 0.13 if dim == 2 else 0.17
     if kind == "position":
         theta = 0.2
-        R = np.array([[np.cos(theta), -np.sin(theta)], [np.sin(theta), np.cos(theta)]])
-        loss = mls_mpm.PositionLoss((x0 - 0.5) @ R.T * 1.1 + 0.5 + np.array([0.03, -0.02]))
+        R = np.eye(dim)
+        R[:2, :2] = [[np.cos(theta), -np.sin(theta)], [np.sin(theta), np.cos(theta)]]
+        loss = mls_mpm.PositionLoss((x0 - 0.5) @ R.T * 1.1 + 0.5 + np.array([0.03, -0.02, 0.01][:dim]))
     elif kind == "mass":
-        t32, t16 = disk_mass(32, center, radius), disk_mass(16, center, radius)
+        t32, t16 = disk_mass(fine, center, radius), disk_mass(coarse, center, radius)
         alpha16 = np.where(t16 > 0, 1.0, 3.0)  # penalty grid (eq 72): extra weight where the target is empty
         loss = mls_mpm.MassLoss([t32, t16], weights=[1.0, 0.5], alpha=[None, alpha16])
     elif kind == "log_mass":
         # density 40 (as in the shipped scenes): node masses ~0.04, so ln(m + 1) keeps its digits; at density 1
         # (m ~ 1e-3) computing ln(m + 1) loses ~3 digits and central differences hit that noise floor
         cfg = cfg.replace(density=40.0)
-        loss = mls_mpm.MassLoss([disk_mass(32, center, radius, density=40.0)], log=True)
+        loss = mls_mpm.MassLoss([disk_mass(fine, center, radius, density=40.0)], log=True)
     elif kind == "color":
         colors = np.stack([x0[:, 0], x0[:, 1], 1.0 - x0[:, 0]], axis=1)  # a color ramp over the body
-        t32 = disk_mass(32, center, radius)
-        i = np.arange(32) / 32.0
-        ramp = np.stack(np.broadcast_arrays(i[None, :], i[:, None], 0.5 + 0 * i[:, None]), axis=-1)
-        loss = mls_mpm.ColorLoss([t32[..., None] * ramp], colors=colors)  # the ramp turned by 90 degrees
+        t32 = disk_mass(fine, center, radius)
+        loss = mls_mpm.ColorLoss([t32[..., None] * ramp(fine, dim)], colors=colors)  # the ramp turned by 90 degrees
     elif kind == "ot":
         # balanced Sinkhorn divergence on a 16 grid, target offset by ~5 cells of it (far beyond eq 11's reach)
         # plus eq 11 on the 32 grid; Sinkhorn run to 1e-12 so that its potentials are exact to round-off
-        far = (0.70, 0.62)
-        loss = mls_mpm.OTLoss([disk_mass(16, far, radius), disk_mass(32, far, radius)], weights=[1.0, 0.5],
+        far = (0.70, 0.62) if dim == 2 else (0.64, 0.58, 0.5)
+        loss = mls_mpm.OTLoss([disk_mass(coarse, far, radius), disk_mass(fine, far, radius)], weights=[1.0, 0.5],
                               blur=1.5, mass_weights=[0.0, 2.0], tol=1e-12)
     elif kind == "color_ot":
         # colour transport per channel on a 16 grid (the ramp turned by 90 degrees, as "color"), eq 13 on a 32 grid
         colors = np.stack([x0[:, 0], x0[:, 1], 1.0 - x0[:, 0]], axis=1)
-        i16, i32 = np.arange(16) / 16.0, np.arange(32) / 32.0
-        targets = [disk_mass(r, center, radius)[..., None] * np.stack(
-            np.broadcast_arrays(i[None, :], i[:, None], 0.5 + 0 * i[:, None]), axis=-1) for r, i in ((16, i16), (32, i32))]
+        targets = [disk_mass(r, center, radius)[..., None] * ramp(r, dim) for r in (coarse, fine)]
         loss = mls_mpm.ColorLoss(targets, colors, weights=[0.0, 1.0], ot_weights=[1.0, 0.0], blur=1.5, tol=1e-12)
     elif kind == "ot_unbalanced":
-        loss = mls_mpm.OTLoss([disk_mass(16, (0.6, 0.55), 0.1, density=2.0)], blur=1.5, reach=0.3, tol=1e-12)
+        loss = mls_mpm.OTLoss([disk_mass(coarse, (0.6, 0.55) + z, 0.1 if dim == 2 else 0.15, density=2.0)],
+                              blur=1.5, reach=0.3, tol=1e-12)
     else:
         raise ValueError(kind)
     sim = mls_mpm.Simulator(cfg, x0, loss=loss)
@@ -85,11 +96,16 @@ def make_problem(kind, schedule="auto"):
 
 
 class Problems(dict):
-    """Simulators built on first use and kept for the module (each compiles its kernels once)."""
+    """Simulators built on first use and kept for the module (each compiles its kernels once); a key is a loss
+    kind (2D) or (kind, dim)."""
 
-    def __missing__(self, kind):
-        self[kind] = make_problem(kind)
-        return self[kind]
+    def __getitem__(self, key):
+        return super().__getitem__((key, 2) if isinstance(key, str) else key)
+
+    def __missing__(self, key):
+        kind, dim = key
+        self[key] = make_problem(kind, dim=dim)
+        return self[key]
 
 
 @pytest.fixture(scope="module")
@@ -102,6 +118,7 @@ def fd_directional(sim, c, d, eps=EPS):
 
 
 KINDS = ["position", "mass", "log_mass", "color", "ot", "ot_unbalanced", "color_ot"]
+DIM = pytest.mark.parametrize("dim", [2, 3], ids=["2d", "3d"])
 # The OT losses' directional derivatives are small (~1e-6 and ~1e-8 of losses ~0.04 and ~4e-4), so at eps = 1e-6
 # the cancellation error 1e-16 |L| / eps is ~1e-5 of them; at 1e-4 it is ~1e-7 and the truncation ~eps^2 below it.
 FD_EPS = {"ot": 1e-4, "ot_unbalanced": 1e-4, "color_ot": 1e-4}
@@ -112,7 +129,7 @@ FD_EPS = {"ot": 1e-4, "ot_unbalanced": 1e-4, "color_ot": 1e-4}
                                   pytest.param("color", marks=pytest.mark.slow),
                                   pytest.param("ot_unbalanced", marks=pytest.mark.slow),
                                   pytest.param("color_ot", marks=pytest.mark.slow)])
-def test_manual_gradient_matches_tape(problems, kind):
+def test_manual_gradient_matches_tape(problems, kind, dim=2):
     """backward() (eq 41-71) vs ti.ad.Tape over the same p2g/grid_op/g2p and loss kernels: rel err <= 1e-6.
 
     Losses: position (eq 10); mass on a 32 and a 16 grid with weights 1, 0.5 and a penalty grid alpha on the
@@ -120,7 +137,7 @@ def test_manual_gradient_matches_tape(problems, kind):
     compiles its own grad-enabled Tape state, ~20 s cold); their seeds are checked against the Tape in
     test_adjoint_kernels.py and their whole trajectories against central differences below.
     """
-    sim, _, c = problems[kind]
+    sim, _, c = problems[kind, dim]
     L = sim.forward(c)
     g = sim.backward()
     g_tape = sim.gradient_tape(c)
@@ -131,9 +148,10 @@ def test_manual_gradient_matches_tape(problems, kind):
 
 
 @pytest.mark.parametrize("kind", KINDS)
-def test_manual_gradient_matches_central_differences(problems, kind):
+@DIM
+def test_manual_gradient_matches_central_differences(problems, kind, dim):
     """<dL/dF_pc, d> vs central differences along 2 random unit directions: rel err <= 1e-5."""
-    sim, _, c = problems[kind]
+    sim, _, c = problems[kind, dim]
     sim.forward(c)
     g = sim.backward()
     for q in range(2):
@@ -145,22 +163,25 @@ def test_manual_gradient_matches_central_differences(problems, kind):
 
 
 @pytest.mark.parametrize("a", [1.0, 1.2, 0.85], ids=["rest F=I", "F=1.2I", "F=0.85I"])
-def test_isotropic_deformation_gradient(problems, a):
+@DIM
+def test_isotropic_deformation_gradient(problems, a, dim):
     """Zero controls except F_pc^0 = (a - 1) I, so F + F_pc = a I at step 0 (a = 1: the rest state, P(I) = 0).
 
-    At these F the polar rotation is R = I, where a careless derivative of eq 9 could divide by zero.
-    Finite, and Tape rel err <= 1e-6, central differences rel err <= 1e-5 (position loss).
+    At these F the polar rotation is R = I and every singular value is repeated, where a careless derivative of
+    eq 9 (2D: the polar angle; 3D: an SVD's 1 / (s_i^2 - s_j^2)) divides by zero.
+    Finite, and Tape rel err <= 1e-6 (2D), central differences rel err <= 1e-5 (position loss).
     """
-    sim, _, c = problems["position"]
+    sim, _, c = problems["position", dim]
     c = np.zeros_like(c)
-    c[0] = (a - 1.0) * np.eye(2)
+    c[0] = (a - 1.0) * np.eye(dim)
     sim.forward(c)
     if a != 1.0:
         F1 = sim.state(1)["F"]
-        assert rel_err(F1, np.broadcast_to(a * np.eye(2), F1.shape)) < 0.05  # (I + dt C) a I, dt C small
+        assert rel_err(F1, np.broadcast_to(a * np.eye(dim), F1.shape)) < 0.05  # (I + dt C) a I, dt C small
     g = sim.backward()
     assert np.all(np.isfinite(g))
-    assert rel_err(g, sim.gradient_tape(c)) <= TAPE_TOL
+    if dim == 2:  # the Tape differentiates the 2D kernels only (Simulator.gradient_tape)
+        assert rel_err(g, sim.gradient_tape(c)) <= TAPE_TOL
     for q in range(2):
         d = random_unit(c.shape, seed=200 + q)
         assert rel_err(np.sum(g * d), fd_directional(sim, c, d)) <= FD_TOL
@@ -200,14 +221,15 @@ def test_ot_loss_vanishes_on_its_own_masses_and_descends_toward_a_far_target():
     assert np.abs(same.fields.loss_grids[0].seed.to_numpy()).max() <= 1e-10 * far_seed
 
 
-def test_initial_state_gradients(problems):
+@DIM
+def test_initial_state_gradients(problems, dim):
     """grad_x0 = dL/dx_p^0 and grad_v0 = dL/dv_p^0 (eq 69, 71 at step 0) vs central differences of the
     initial state (set_initial), rel err <= 1e-5, at a state with random v0 and controls.
 
     Sign: the position target lies right of the body (+0.03 in x), so moving or pushing every particle
     right lowers the loss: the x-components of both gradients sum to a negative number.
     """
-    sim, x0, c = problems["position"]
+    sim, x0, c = problems["position", dim]
     rng = np.random.default_rng(3)
     v0 = 0.1 * rng.standard_normal(x0.shape)
     try:
@@ -232,16 +254,18 @@ def test_initial_state_gradients(problems):
         sim.set_initial(x0)
 
 
-@pytest.mark.parametrize("start", [10, 17], ids=["at control step 10", "between controls"])
-def test_restart_reproduces_loss_and_gradient(problems, start):
+@pytest.mark.parametrize("dim, start", [(2, 10), (2, 17), (3, 4), (3, 7)],
+                         ids=["2d at control step 10", "2d between controls", "3d at control step 4",
+                              "3d between controls"])
+def test_restart_reproduces_loss_and_gradient(problems, dim, start):
     """forward(c, start=k) after a full forward(c) recomputes steps k..N_t from the stored step k: the same loss
     and, after backward(), the same dL/dF_pc for controls acting at steps >= k, and zero for earlier ones.
 
-    Exact equality: this scene runs the serial schedule (SimConfig.schedule = "auto" below 4000 particles +
-    nodes), which adds in a fixed order.
+    Exact equality: the 2D scene runs the serial schedule (SimConfig.schedule = "auto" below 4000 particles +
+    nodes), which adds in a fixed order; the 3D one the parallel schedule, whose per-thread private grids are
+    filled from fixed particle ranges and summed in a fixed order.
     """
-    sim, _, c = problems["position"]
-    assert sim.cfg.serial(sim.n_particles)
+    sim, _, c = problems["position", dim]
     L = sim.forward(c)
     g = sim.backward()
     L_restart = sim.forward(c, start=start)

@@ -80,6 +80,25 @@ def test_rest_block_is_red_inside_and_white_far_outside():
     assert s.min() == 0.0 and s.max() == 3.0 and np.any((s > 0.9) & (s < 1.1)) and np.any((s > 1.9) & (s < 2.1))
 
 
+@pytest.mark.parametrize("mode", ["mass", "color", "particles"])
+def test_a_transparent_background_is_alpha_0_and_the_body_opaque(mode, tmp_path):
+    x, m_p = block(0.25, 0.75)
+    colors = np.tile([0.2, 0.4, 0.9], (len(x), 1))
+    target = np.zeros((N_GRID, N_GRID))
+    target[8:24, 8:24] = REST  # an outline through the background too
+    white = Renderer(N_GRID, len(x), SIZE, REST, mode).render(x, m_p, colors=colors, target_outline=target)
+    clear = Renderer(N_GRID, len(x), SIZE, REST, mode, background="transparent")
+    img = clear.render(x, m_p, colors=colors, target_outline=target)
+    assert img.shape == (SIZE, SIZE, 4) and img.dtype == np.uint8
+    assert img[0, 0, 3] == 0 and img[SIZE // 2, SIZE // 2, 3] == 255  # a corner, the body's centre
+    assert (img[..., 3] == 0).sum() > SIZE * SIZE // 4  # most of the background
+    np.testing.assert_array_equal(img[..., :3], white)  # composited on white: the white frame
+    assert set(np.unique(img[..., 3])) == {0, 255}
+    path = FrameWriter(tmp_path).write(img)
+    with Image.open(path) as im:
+        assert im.mode == "RGBA" and np.array_equal(np.asarray(im), img)
+
+
 def test_mass_colormap_is_monotone_with_documented_anchors():
     th = Thresholds()
     r = Renderer(N_GRID, 0, SIZE, REST, "mass", thresholds=th)

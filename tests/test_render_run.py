@@ -19,6 +19,7 @@ from mls_mpm.frames import FrameWriter, frame_paths
 from mls_mpm.render_run import RenderError, render_run
 from mls_mpm.run import run_scene
 from mls_mpm.scene import RENDER_SIZE_MAX, RENDER_SIZE_MIN, load_scene
+from mls_mpm.video import read_mp4
 
 TINY = Path(__file__).parent / "data" / "tiny.toml"
 FRAMES = [f"frame_{k:05d}.png" for k in range(5)]
@@ -106,6 +107,7 @@ def test_new_frames_replace_the_old_ones_only_when_all_are_written(folder):
     assert lines[0] == f"rendering scene tiny from {folder / 'result.npz'}"
     for name in ("animation.gif", "sheet.png", "loss.png"):
         assert (folder / name).is_file()
+    assert read_mp4(folder / "animation.mp4") == (5, (64, 64))  # every frame, at the frames' size
     assert not [p for p in folder.iterdir() if p.name.endswith(".tmp")]
 
 

@@ -958,7 +958,7 @@ def test_float32_overflowing_control_is_refused(float32_run):
 @pytest.mark.slow
 def test_float32_overflowing_initial_state_is_named(float32_run):
     """In float32 an initial F entry of 1e39 becomes Inf: refused with a ValueError (set_initial) or a
-    SimulationError at step 0 (check_particle runs before the particle is scattered), naming particle 45."""
+    SimulationError at step 0 (check_particle names the earliest step with a fault), naming particle 45."""
     kind, msg = float32_run["initial F 1e39"]
     assert (kind == "ValueError" and msg.startswith("F: particle 45 ")) or \
         (kind == "SimulationError" and msg.startswith("step 0: particle 45 ")), (kind, msg)

@@ -14,32 +14,59 @@ import time
 
 import numpy as np
 
-# The reference sizes: f32 at 64^2 with ~8k particles, and the thesis program's f64 32^2 / 1,245.
+# The reference sizes: f32 at 64^2 with ~8k particles, and the thesis program's f64 32^2 / 1,245; in 3D (issue 12)
+# f32 at 32^3 with ~16k particles and at 64^3 with ~100k, 30 steps each, and one window of the 3D successor's
+# settings (32^3, 8 particles per cell volume in a ball of radius 8 cells, dt = 1/120, drag 0.5, a control
+# every 10 of 30 steps, the thesis program's material E = 90000 dx^2, nu = 0.3, density 40).
 CASES = {
     "large": dict(dtype="f32", n_grid=64, particles=8192, steps=200),
     "small": dict(dtype="f64", n_grid=32, particles=1245, steps=200),
+    "3d": dict(dim=3, dtype="f32", n_grid=32, particles=16384, steps=30),
+    "3d large": dict(dim=3, dtype="f32", n_grid=64, particles=100000, steps=30),
+    "3d window": dict(dim=3, dtype="f32", n_grid=32, particles=17157, steps=30, window=True),
 }
 THREADS = 2
+WINDOW_CELLS = 8  # radius of the ball of the "3d window" case, in cells
 
 
 def scene_of(case, steps):
-    """A disk of `particles` particles centred in the domain, a mass loss toward a shifted disk."""
+    """A disk (3D: a ball) of `particles` particles centred in the domain, a mass loss toward a shifted one."""
     from ..config import SimConfig
-
-    arch = case.get("arch", "cpu")
-    cfg = SimConfig(n_grid=case["n_grid"], steps=steps, dt=1e-4, E=1e3, nu=0.2, density=1.0, gamma=0.5,
-                    stride=min(10, steps), dtype=case["dtype"], threads=THREADS if arch == "cpu" else 0,
-                    schedule=case.get("schedule", "auto"), arch=arch)
-    rng = np.random.default_rng(0)
-    r = 0.25 * np.sqrt(rng.uniform(0, 1, case["particles"]))
-    a = rng.uniform(0, 2 * np.pi, case["particles"])
-    x0 = 0.5 + np.stack([r * np.cos(a), r * np.sin(a)], axis=1)
-    from ..images import splat_grid
     from ..losses import MassLoss
 
-    target = splat_grid(x0 + [0.05, 0.02], cfg.m_p, cfg.n_grid)
-    controls = 0.01 * rng.standard_normal((cfg.n_controls, len(x0), 2, 2))
+    arch = case.get("arch", "cpu")
+    dim, n = case.get("dim", 2), case["n_grid"]
+    common = dict(dim=dim, n_grid=n, steps=steps, stride=min(10, steps), dtype=case["dtype"],
+                  threads=THREADS if arch == "cpu" else 0, schedule=case.get("schedule", "auto"), arch=arch)
+    rng = np.random.default_rng(0)
+    if dim == 2:
+        cfg = SimConfig(dt=1e-4, E=1e3, nu=0.2, density=1.0, gamma=0.5, **common)
+        r = 0.25 * np.sqrt(rng.uniform(0, 1, case["particles"]))
+        a = rng.uniform(0, 2 * np.pi, case["particles"])
+        x0 = 0.5 + np.stack([r * np.cos(a), r * np.sin(a)], axis=1)
+        from ..images import splat_grid
+
+        target = splat_grid(x0 + [0.05, 0.02], cfg.m_p, n)
+    else:
+        if case.get("window"):
+            radius = WINDOW_CELLS / n
+            cfg = SimConfig(dt=1 / 120, E=90000.0 / n ** 2, nu=0.3, density=40.0, gamma=0.5, gravity=(0.0,) * 3,
+                            particles_per_cell=8, **common)
+        else:
+            radius = 0.25
+            cfg = SimConfig(dt=1e-4, E=1e3, nu=0.2, density=1.0, gamma=0.5, **common)
+        u = rng.standard_normal((case["particles"], 3))
+        x0 = 0.5 + radius * u / np.linalg.norm(u, axis=1, keepdims=True) * rng.uniform(0, 1, (len(u), 1)) ** (1 / 3)
+        target = _ball_mass(n, 0.5 + np.array([0.05, 0.02, -0.03]), radius, len(x0) * cfg.m_p)
+    controls = 0.01 * rng.standard_normal((cfg.n_controls, len(x0), dim, dim))
     return cfg, x0, MassLoss([target]), controls
+
+
+def _ball_mass(n, center, radius, mass):
+    """Node masses (n, n, n) of a ball of total mass `mass`, uniform inside with an edge one cell wide."""
+    nodes = np.moveaxis(np.indices((n,) * 3) / n, 0, -1)
+    inside = np.clip((radius - np.linalg.norm(nodes - center, axis=-1)) * n + 0.5, 0.0, 1.0)
+    return mass * inside / inside.sum()
 
 
 def _peak_mib():
@@ -64,8 +91,8 @@ def measure(case, path, steps):
     else:
         from ..tape import tape_gradient
 
-        N = len(x0)
-        init = {"x": x0, "v": np.zeros((N, 2)), "C": np.zeros((N, 2, 2)), "F": np.tile(np.eye(2), (N, 1, 1))}
+        N, d = len(x0), cfg.dim
+        init = {"x": x0, "v": np.zeros((N, d)), "C": np.zeros((N, d, d)), "F": np.tile(np.eye(d), (N, 1, 1))}
         _, _, state = tape_gradient(cfg, init, loss, controls)
         t0 = time.perf_counter()
         tape_gradient(cfg, init, loss, controls, state=state)

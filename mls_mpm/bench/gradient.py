@@ -10,8 +10,9 @@ from .child import CASES, THREADS, backend_here, run_child
 from .output import writable_file
 
 
-def bench_gradient(quick=False, emit=print, arch="cpu", out=None):
+def bench_gradient(quick=False, emit=print, arch="cpu", out=None, dims=(2, 3)):
     """Print the gradient benchmark as a markdown table (and return its rows); out: also write it there.
+    dims: the dimensions whose cases run (CASES, 2D and 3D).
 
     A file `out` that could not be written is refused before anything is measured."""
     if out:
@@ -32,8 +33,10 @@ def bench_gradient(quick=False, emit=print, arch="cpu", out=None):
 
     rows = []
     for name, case in CASES.items():
+        if case.get("dim", 2) not in dims:
+            continue
         case = dict(case, arch=arch)
-        steps = 40 if quick else case["steps"]
+        steps = min(case["steps"], 40 if case.get("dim", 2) == 2 else 10) if quick else case["steps"]
         man = warm(case, "manual", steps)
         tape = warm(case, "tape", steps)
         if backend == "cpu":  # on a GPU the fields live in device memory: host RSS says nothing of them
@@ -55,9 +58,21 @@ def bench_gradient(quick=False, emit=print, arch="cpu", out=None):
         fwd, bwd, tp = man["forward_ms"], man["backward_ms"], tape["tape_ms"]
         m_man, m_tape = man["peak_mib"], tape["peak_mib"]
         mem = f"{m_man:.0f} | {m_tape:.0f} | {m_man / m_tape:.2f}" if backend == "cpu" else "- | - | -"
-        label = f"{case['dtype']}, {case['n_grid']}^2 grid, {case['particles']} particles, {steps} steps"
+        dim = case.get("dim", 2)
+        label = f"{case['dtype']}, {case['n_grid']}^{dim} grid, {case['particles']} particles, {steps} steps"
+        if case.get("window"):
+            label += " (one window of the 3D successor's settings)"
         say(f"| {label} | {fwd:.3f} | {case['particles'] / fwd * 1e3 / 1e6:.2f} M | {bwd:.3f} | {bwd / fwd:.2f} | "
             f"{tp:.3f} | {tp / (fwd + bwd):.2f} | {mem} |")
+    speed = {name: case["particles"] / man["forward_ms"] for name, case, _, man, _ in rows}  # particle-steps/ms
+    if "large" in speed and "3d" in speed:
+        say(f"\n3D forward particle-steps/s (f32, 32^3) / 2D (f32, 64^2), this run: {speed['3d'] / speed['large']:.2f} "
+            "(target >= 0.25: the 3D stencil is 4x wider).")
+    for name, case, steps, man, _ in rows:
+        if case.get("window"):
+            say(f"One {steps}-step window of the 3D successor's settings ({case['particles']} particles, 32^3): "
+                f"forward + manual backward {(man['forward_ms'] + man['backward_ms']) * steps / 1e3:.2f} s "
+                "(target <= 1 s).")
     if out:
         from ..checkpoint import atomic_write
 
