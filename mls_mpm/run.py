@@ -4,7 +4,7 @@ Files in the output folder, all written atomically (mode 0666 minus the umask):
   checkpoint.npz  optimizer progress (deleted when the run completes)
   result.npz      controls of every round, initial states, final state, losses (what `render` needs)
   summary.json    scene, loss_initial, loss_final, iou, mass_outside_target, iterations, converged, ...
-  frames/, animation.gif, sheet.png, loss.png   (see render_run)
+  frames/, animation.gif, sheet.png, loss.png   (see render_run; a 3D run also particles/ and meshes/)
   .lock           held by the running job (mls_mpm/lock.py), removed when it ends
 
 checkpoint.npz is rewritten at every checkpoint of the optimizer (see mls_mpm/optimize.py: after every control
@@ -13,7 +13,8 @@ the finished rounds, the initial state of the next one and the optimizer state o
 restarts from the last one written, and ends bit for bit where an uninterrupted run ends. When it records every
 round as done (the run was killed while writing its result), the resume only re-simulates the last round and
 writes the result. A run never overwrites a folder another job holds, and a finished run removes the renders an
-earlier run left there, so a folder never mixes two runs.
+earlier run left there, so a folder never mixes two runs. A 3D scene (sim.dim = 3) writes the same files, its
+arrays with dim entries per vector (x (N, 3), controls (K, N, 3, 3), target grids (res, res, res)).
 """
 import json
 import shutil
@@ -35,7 +36,9 @@ from .simulator import Simulator
 
 __all__ = ["OutputError", "prepare_out", "fingerprint", "run_scene"]
 
-RENDER_OUTPUTS = ("frames", "animation.gif", "sheet.png", "loss.png", "animation.mp4")  # what render_run makes
+RENDER_OUTPUTS = ("frames", "animation.gif", "sheet.png", "loss.png", "animation.mp4",  # what render_run makes
+                  "particles", "meshes")  # and, for a 3D run, its PLY sequences (export3d.PARTICLES_DIR, MESHES_DIR)
+SEQUENCE_DIRS = ("frames", "particles", "meshes")  # folders of render_run's numbered files
 MISMATCHES_SHOWN = 3  # settings named in a resume refusal before "and N more"
 
 
@@ -223,7 +226,8 @@ def _finish(scene, prob, sim, done, starts, out, wall, emit):
 
 def _remove_temp_files(out, emit):
     """Temp files of atomic writes that a killed process left in the folder or its frames/."""
-    stale = [p for d in (out, out / "frames") if d.is_dir() for p in d.glob(TEMP_GLOB) if p.is_file()]
+    stale = [p for d in (out, *(out / n for n in SEQUENCE_DIRS)) if d.is_dir() for p in d.glob(TEMP_GLOB)
+             if p.is_file()]
     for p in stale:
         p.unlink(missing_ok=True)
     if stale:
@@ -241,7 +245,7 @@ def _remove_stale_renders(out, emit):
             p.unlink()
     if found:
         emit(f"removed the renders of an earlier run from {out}: "
-             + ", ".join(n + ("/" if n == "frames" else "") for n in found))
+             + ", ".join(n + ("/" if n in SEQUENCE_DIRS else "") for n in found))
 
 
 def _save_checkpoint(path, scene, done, starts, opt_state, elapsed):
