@@ -7,8 +7,8 @@ setup(
     python_requires=">=3.10",
     packages=["mls_mpm", "mls_mpm.bench", "adjoint"],
     license="MIT",
-    install_requires=["taichi>=1.7,<1.8", "numpy", "pillow", "scipy", "tomli; python_version<'3.11'",
-                      "plyfile", "scikit-image", "imageio-ffmpeg"],  # 3D PLY sequences, meshes, animation.mp4
+    install_requires=["taichi>=1.7,<1.8", "numpy", "pillow", "scipy", "trimesh", "tomli; python_version<'3.11'",
+                      "plyfile", "scikit-image", "imageio-ffmpeg"],  # trimesh: 3D meshes in; the rest: 3D outputs
     extras_require={"test": ["pytest", "pot"]},
     entry_points={"console_scripts": ["mls-mpm = mls_mpm.cli:main"]},
 )

@@ -20,7 +20,7 @@ JITTER = 0.5  # lattice jitter, as a fraction of the sub-cell spacing
 MAX_PIXELS = 50_000_000  # width x height of the largest image accepted (50 megapixels, 1.6 GB as float RGBA)
 RGBA_BYTES = 4 * 8  # bytes per pixel of the float64 RGBA array load_image returns
 DECODE_BYTES = RGBA_BYTES + 4 + 8  # bytes per pixel while loading: the RGBA array, Pillow's 8-bit copy, temporaries
-STENCIL_NODES = 16  # nodes of a particle's 4 x 4 B-spline stencil
+STENCIL = 4  # nodes of a particle's B-spline stencil per axis
 ROUND_OFF = 1e-9  # cells: particle_bound takes a box edge this close to a cell edge as on it
 CHUNK = 1 << 16  # cells (sample_particles) or particles (splat_grid) processed at a time, to bound temporaries
 
@@ -100,19 +100,35 @@ def material(rgba: np.ndarray) -> np.ndarray:
     return (rgba[..., 3] > OPAQUE) & ~np.all(rgba[..., :3] > WHITE, axis=-1)
 
 
-def default_region(n_grid: int, bound: int = 3) -> tuple:
-    """The centred square [(bound + 2) dx, 1 - (bound + 2) dx]^2 that keeps a margin beyond the walls."""
+def default_region(n_grid: int, bound: int = 3, dim: int = 2) -> tuple:
+    """The centred square (cube for dim = 3) [(bound + 2) dx, 1 - (bound + 2) dx]^dim that keeps a margin beyond
+    the walls: (x0, y0, x1, y1), or (x0, y0, z0, x1, y1, z1)."""
     m = (bound + 2) / n_grid
-    return (m, m, 1.0 - m, 1.0 - m)
+    return (m,) * dim + (1.0 - m,) * dim
+
+
+def fit_box(lo, hi, region) -> tuple:
+    """(origin, s): the box [lo, hi] (dim numbers each) scaled by s, aspect kept, centred in region (x0, y0(, z0),
+    x1, y1(, z1)); its point p lands at origin + s (p - lo). Axes where the box is flat do not limit s."""
+    dim = len(lo)
+    size = [float(h) - float(l) for l, h in zip(lo, hi)]
+    room = [float(region[dim + a]) - float(region[a]) for a in range(dim)]
+    s = min(r / e for r, e in zip(room, size) if e > 0)
+    return tuple(float(region[a]) + 0.5 * (room[a] - size[a] * s) for a in range(dim)), s
+
+
+def box_cells(origin, extent, dx) -> tuple:
+    """(lo, hi): the cells [lo, hi) per axis touching the box origin + [0, extent] (dim numbers each)."""
+    return (tuple(math.floor(o / dx) for o in origin),
+            tuple(math.ceil((o + e) / dx) for o, e in zip(origin, extent)))
 
 
 def fit(shape, region) -> tuple:
     """(ox, oy, s): the image of shape (H, W, ...) scaled by s (domain units per pixel), aspect kept,
     centred in region (x0, y0, x1, y1); pixel (row r, col c) covers x in ox + [c, c+1] s, y in oy + [H-1-r, H-r] s."""
     H, W = shape[:2]
-    x0, y0, x1, y1 = region
-    s = min((x1 - x0) / W, (y1 - y0) / H)
-    return x0 + 0.5 * ((x1 - x0) - W * s), y0 + 0.5 * ((y1 - y0) - H * s), s
+    (ox, oy), s = fit_box((0, 0), (W, H), region)
+    return ox, oy, s
 
 
 def pixel_of(x: np.ndarray, shape, region):
@@ -130,8 +146,8 @@ def cell_range(shape, n_grid, region) -> tuple:
     into region; sample_particles draws particles_per_cell points in each."""
     H, W = shape[:2]
     ox, oy, s = fit(shape, region)
-    dx = 1.0 / n_grid
-    return math.floor(ox / dx), math.ceil((ox + W * s) / dx), math.floor(oy / dx), math.ceil((oy + H * s) / dx)
+    (i0, j0), (i1, j1) = box_cells((ox, oy), (W * s, H * s), 1.0 / n_grid)
+    return i0, i1, j0, j1
 
 
 def particle_bound(mask, n_grid, particles_per_cell, region=None, bound=3) -> int:
@@ -172,23 +188,10 @@ def sample_particles(rgba, n_grid, particles_per_cell, region=None, seed=0, boun
     region = default_region(n_grid, bound) if region is None else tuple(float(r) for r in region)
     dx = 1.0 / n_grid
     i0, i1, j0, j1 = cell_range(rgba.shape, n_grid, region)
-    nj = j1 - j0
-    n_cells = (i1 - i0) * nj
     rng = np.random.default_rng(seed)
     k = math.isqrt(particles_per_cell)
-    lattice = k * k == particles_per_cell  # jittered lattice: sub-cell centres moved by up to JITTER/2 sub-cells
-    a = np.stack(np.meshgrid(np.arange(k), np.arange(k), indexing="ij"), -1).reshape(1, -1, 2)
     xs, colors = [], []
-    step = max(1, CHUNK // particles_per_cell)
-    for start in range(0, n_cells, step):  # cells in i-major order; the random stream does not depend on step
-        index = np.arange(start, min(start + step, n_cells))
-        cells = np.stack([i0 + index // nj, j0 + index % nj], -1)[:, None, :]
-        if lattice:
-            u = 0.5 + JITTER * (rng.random((len(index), k * k, 2)) - 0.5)
-            offsets = (a + u) / k
-        else:
-            offsets = rng.random((len(index), particles_per_cell, 2))
-        x = ((cells + offsets) * dx).reshape(-1, 2)
+    for x in cell_samples((i0, j0), (i1, j1), particles_per_cell, dx, rng):
         row, col, inside = pixel_of(x, rgba.shape, region)
         keep = inside & mask[row, col]
         xs.append(x[keep])
@@ -200,6 +203,36 @@ def sample_particles(rgba, n_grid, particles_per_cell, region=None, seed=0, boun
     return x, np.concatenate(colors)
 
 
+def lattice_side(particles_per_cell, dim=2) -> int:
+    """k when particles_per_cell = k^dim (a jittered k^dim lattice per cell), else 0 (uniform random points)."""
+    k = round(particles_per_cell ** (1.0 / dim))
+    return k if k ** dim == particles_per_cell else 0
+
+
+def cell_samples(lo, hi, particles_per_cell, dx, rng):
+    """particles_per_cell points in each simulation cell of the box [lo, hi) (cell indices per axis), yielded
+    as (n, dim) arrays of about CHUNK points, cells in C (i-major) order.
+
+    A jittered k^dim lattice when particles_per_cell = k^dim (sub-cell centres moved by up to JITTER/2
+    sub-cells), else uniform random points; the random stream does not depend on the chunk size.
+    """
+    lo, hi = np.asarray(lo, np.int64), np.asarray(hi, np.int64)
+    dim, counts = len(lo), tuple(int(c) for c in hi - lo)
+    n_cells = math.prod(counts)
+    k = lattice_side(particles_per_cell, dim)
+    a = np.stack(np.meshgrid(*[np.arange(k)] * dim, indexing="ij"), -1).reshape(1, -1, dim)
+    step = max(1, CHUNK // particles_per_cell)
+    for start in range(0, n_cells, step):
+        index = np.arange(start, min(start + step, n_cells))
+        cells = (np.stack(np.unravel_index(index, counts), -1) + lo)[:, None, :]
+        if k:
+            u = 0.5 + JITTER * (rng.random((len(index), k ** dim, dim)) - 0.5)
+            offsets = (a + u) / k
+        else:
+            offsets = rng.random((len(index), particles_per_cell, dim))
+        yield ((cells + offsets) * dx).reshape(-1, dim)
+
+
 def bspline(t: np.ndarray) -> np.ndarray:
     """Cubic B-spline N1(t): |t|^3/2 - t^2 + 2/3 for |t| < 1, (2 - |t|)^3/6 for 1 <= |t| < 2, else 0."""
     a = np.abs(t)
@@ -207,34 +240,44 @@ def bspline(t: np.ndarray) -> np.ndarray:
 
 
 def splat_grid(x, mass, res, values=None) -> np.ndarray:
-    """P2G with the cubic B-spline onto a res x res grid: (res, res) mass, or (res, res, C) of mass * values.
+    """P2G with the cubic B-spline onto a res^dim grid (dim = x.shape[-1], 2 or 3): (res,) * dim mass, or
+    (res,) * dim + (C,) of mass * values.
 
-    mass: a number or one per particle; entry [i, j] is the node at (i / res, j / res); nodes outside are dropped.
-    Particles are splatted in chunks, in order, so the sums do not depend on the chunk size.
+    mass: a number or one per particle; entry [i, j(, k)] is the node at (i, j(, k)) / res; nodes outside are
+    dropped. Particles are splatted in chunks, in order, so the sums do not depend on the chunk size.
     """
-    x = np.asarray(x, dtype=np.float64).reshape(-1, 2)
+    x = np.asarray(x, dtype=np.float64)
+    dim = x.shape[-1] if x.ndim > 1 else 2
+    x = x.reshape(-1, dim)
     mass = np.broadcast_to(np.asarray(mass, dtype=np.float64), (len(x),))
     values = None if values is None else np.asarray(values, np.float64).reshape(len(x), -1)
-    grid = np.zeros((res * res, 1 if values is None else values.shape[1]))
-    step = max(1, CHUNK // STENCIL_NODES)
+    grid = np.zeros((res ** dim, 1 if values is None else values.shape[1]))
+    step = max(1, CHUNK // STENCIL ** dim)
     for start in range(0, len(x), step):
         part = slice(start, start + step)
         _splat_into(grid, res, x[part], mass[part], None if values is None else values[part])
-    grid = grid.reshape(res, res, -1)
+    grid = grid.reshape((res,) * dim + (-1,))
     return grid[..., 0] if values is None else grid
 
 
 def _splat_into(grid, res, x, mass, values):
-    """Add the particles x (n, 2) of mass (n,) carrying values (n, C) or None to grid (res^2, C)."""
+    """Add the particles x (n, dim) of mass (n,) carrying values (n, C) or None to grid (res^dim, C)."""
+    n, dim = x.shape
     carried = mass[:, None] if values is None else mass[:, None] * values
-    base = np.floor(x * res).astype(np.int64) - 1  # (n, 2)
+    base = np.floor(x * res).astype(np.int64) - 1  # (n, dim)
     fx = x * res - base  # in [1, 2)
-    offsets = np.arange(4)
-    w = bspline(fx[:, :, None] - offsets)  # (n, 2, 4): weight of node base + j per axis
-    I = base[:, 0, None, None] + offsets[None, :, None]  # (n, 4, 1)
-    J = base[:, 1, None, None] + offsets[None, None, :]  # (n, 1, 4)
-    N = w[:, 0, :, None] * w[:, 1, None, :]  # (n, 4, 4)
-    I, J = np.broadcast_arrays(I, J)
-    ok = (I >= 0) & (I < res) & (J >= 0) & (J < res)
-    p = np.broadcast_to(np.arange(len(x))[:, None, None], ok.shape)[ok]
-    np.add.at(grid, I[ok] * res + J[ok], N[ok][:, None] * carried[p])
+    offsets = np.arange(STENCIL)
+    w = bspline(fx[:, :, None] - offsets)  # (n, dim, 4): weight of node base + j per axis
+
+    def along(a, v):  # v (n, 4) laid along axis a of an (n, 4, ..., 4) stencil
+        return v.reshape((n,) + (1,) * a + (STENCIL,) + (1,) * (dim - 1 - a))
+
+    N, flat, ok = along(0, w[:, 0]), 0, True
+    for a in range(dim):
+        I = along(a, base[:, a, None] + offsets)
+        if a:
+            N = N * along(a, w[:, a])
+        flat, ok = flat * res + I, ok & (I >= 0) & (I < res)
+    N, flat, ok = np.broadcast_arrays(N, flat, ok)
+    p = np.broadcast_to(np.arange(n).reshape((n,) + (1,) * dim), ok.shape)[ok]
+    np.add.at(grid, flat[ok], N[ok][:, None] * carried[p])

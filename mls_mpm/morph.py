@@ -20,6 +20,10 @@ reproduces the run and a user can edit it:
   the first iteration (a coarse stage of colour transport alone left color_swap's colours scrambled: iou 0.36
   against 0.87 without it);
 - L-BFGS, the quality's iteration count and time budget (optimize.max_seconds).
+
+In 3D (sim.dim = 3: INITIAL or TARGET a mesh, "shape:..." or "extrude:IMAGE", shapes.py; or dim=3) the same
+choices are made on the 3D quality's grid (QUALITIES_3D: 32^3 at default) with 1 particle per cell volume, no
+gravity along any axis, and the colour test on the sampled particles' colours.
 """
 from __future__ import annotations
 
@@ -29,8 +33,10 @@ from pathlib import Path
 
 import numpy as np
 
+from . import shapes
 from .errors import UserError
 from .images import ImageError, check_image, load_image, material, sample_particles, splat_grid
+from .meshes import MeshError, is_mesh_path
 from .losses import COLOR_EMPTY, OT_BLUR
 from .ot import sinkhorn_divergence
 from .scene_keys import NAME_MAX, parse_override, toml_text, valid_name
@@ -60,6 +66,11 @@ QUALITIES = {
     "default": Quality(n_grid=64, iterations=120, max_seconds=110.0),
     "best": Quality(n_grid=64, iterations=250, max_seconds=0.0),
 }
+QUALITIES_3D = {  # 3D: n_grid^3 nodes and a 4^3 stencil cost more a step, so a coarser grid and 1 particle per cell
+    "fast": Quality(n_grid=24, iterations=30, max_seconds=120.0, particles_per_cell=1),
+    "default": Quality(n_grid=32, iterations=60, max_seconds=300.0, particles_per_cell=1),
+    "best": Quality(n_grid=32, iterations=150, max_seconds=0.0, particles_per_cell=1),
+}
 
 
 class MorphError(UserError):
@@ -79,7 +90,7 @@ class Choice:
     shift: tuple = (0.0, 0.0)  # the target's move onto the body's centre of mass
 
     def line(self, q: str) -> str:
-        moved = (f"target moved by ({self.shift[0]:+.3f}, {self.shift[1]:+.3f}) onto the body's centre of mass "
+        moved = (f"target moved by ({', '.join(f'{v:+.3f}' for v in self.shift)}) onto the body's centre of mass "
                  "(--keep-position: not); " if any(self.shift) else "")
         return (f"morph ({q}): {moved}{self.loss} loss; travel {self.distance:.3f} (90% of the transport plan) at "
                 f"up to {self.speed:.3g}/s (CFL-safe {SPEED} cell/step) -> {self.steps} steps")
@@ -97,9 +108,29 @@ def _image(path, what):
     return p.resolve(), rgba
 
 
+def is_3d(text) -> bool:
+    """Whether a morph input names a 3D shape: a mesh file, "shape:..." or "extrude:IMAGE"."""
+    return str(text).startswith(("shape:", "extrude:")) or is_mesh_path(text)
+
+
+def _shape(text, what):
+    """(canonical text with absolute paths, Solid) of a 3D morph input; paths relative to the working directory."""
+    try:
+        kind, body, params = shapes.parse(text)
+        if kind != "shape":
+            body = Path(body).expanduser().resolve()
+        return shapes.text_of(kind, body, params), shapes.solid(shapes.text_of(kind, body, params))
+    except (ImageError, MeshError, shapes.ShapeError) as e:
+        raise MorphError(f"{what} {text}: expected a 3D shape ({e})") from None
+
+
 def color_regions(rgba) -> int:
     """How many colours hold at least COLOR_SHARE of the material pixels (colours quantised per channel)."""
-    rgb = rgba[material(rgba)][:, :3]
+    return colour_count(rgba[material(rgba)][:, :3])
+
+
+def colour_count(rgb) -> int:
+    """How many colours hold at least COLOR_SHARE of the colours rgb (n, 3) (quantised per channel)."""
     q = np.minimum((rgb * COLOR_LEVELS).astype(int), COLOR_LEVELS - 1)
     _, counts = np.unique(q[:, 0] * COLOR_LEVELS ** 2 + q[:, 1] * COLOR_LEVELS + q[:, 2], return_counts=True)
     return int(np.count_nonzero(counts >= COLOR_SHARE * len(rgb)))
@@ -149,41 +180,50 @@ def centring_shift(x0, xt, n_grid, bound=3) -> np.ndarray:
     return np.clip(shift, np.minimum(lo, 0.0), np.maximum(hi, 0.0))
 
 
-def choose(initial, target, quality="default", loss="auto", seconds=None, sets=(), keep_position=False) -> Choice:
-    """The scene for morphing image `initial` into image `target` (MorphError on bad input)."""
+def choose(initial, target, quality="default", loss="auto", seconds=None, sets=(), keep_position=False,
+           dim=None) -> Choice:
+    """The scene for morphing image (or 3D shape) `initial` into `target` (MorphError on bad input).
+
+    dim: 2 or 3; None: 3 when either names a 3D shape (is_3d), else 2."""
+    dim = dim or (3 if is_3d(initial) or is_3d(target) else 2)
     if quality not in QUALITIES:
         raise MorphError(f"--quality {quality}: expected one of {', '.join(QUALITIES)}")
-    q = QUALITIES[quality]
-    p0, rgba0 = _image(initial, "INITIAL")
-    pt, rgbat = _image(target, "TARGET")
+    q = (QUALITIES_3D if dim == 3 else QUALITIES)[quality]
+    if dim == 3:
+        (p0, shape0), (pt, shapet) = _shape(initial, "INITIAL"), _shape(target, "TARGET")
+    else:
+        (p0, rgba0), (pt, rgbat) = _image(initial, "INITIAL"), _image(target, "TARGET")
     given = _overrides(sets)
     n = given.get(("sim", "n_grid"), q.n_grid)
     n = n if isinstance(n, int) and not isinstance(n, bool) and n >= 2 else q.n_grid  # a bad one: load_scene says so
     ppc = given.get(("sim", "particles_per_cell"), q.particles_per_cell)
     ppc = ppc if isinstance(ppc, int) and 1 <= ppc <= 1024 else q.particles_per_cell
     try:
-        x0, c0 = sample_particles(rgba0, n, ppc)
-        xt, ct = sample_particles(rgbat, n, ppc)
-    except ImageError as e:
+        if dim == 3:
+            (x0, c0), (xt, ct) = shapes.sample(shape0, n, ppc), shapes.sample(shapet, n, ppc)
+        else:
+            (x0, c0), (xt, ct) = sample_particles(rgba0, n, ppc), sample_particles(rgbat, n, ppc)
+    except (ImageError, shapes.ShapeError) as e:
         raise MorphError(f"INITIAL {initial} or TARGET {target}: {e}; use larger shapes or a finer --set "
                          "sim.n_grid") from None
-    shift = np.zeros(2) if keep_position else centring_shift(x0, xt, n)
+    shift = np.zeros(dim) if keep_position else centring_shift(x0, xt, n)
     xt = xt + shift
-    use_color = loss == "color" or (loss == "auto" and color_regions(rgba0) > 1 and color_regions(rgbat) > 1)
+    regions = (colour_count(c0), colour_count(ct)) if dim == 3 else (color_regions(rgba0), color_regions(rgbat))
+    use_color = loss == "color" or (loss == "auto" and min(regions) > 1)
     dx = 1.0 / n
     distance = travel_distance(x0, xt)
     speed = SPEED * dx / DT
     steps = 2.0 * distance / (SPEED * dx) + SETTLE
     steps = int(min(max(STRIDE * math.ceil(steps / STRIDE), MIN_STEPS), MAX_STEPS))
     density = 40.0
-    m_p = density * dx * dx / ppc
+    m_p = density * dx ** dim / ppc
     m_t = m_p * len(x0) / len(xt)
     coarse, fine = max(8, n // 2), n
     sections = {
         "scene": {"name": _name(p0, pt), "initial": str(p0), "target": str(pt),
                   "target_shift": [float(f"{v:.6g}") for v in shift]},
-        "sim": {"n_grid": n, "steps": steps, "dt": DT, "E": E_CELLS * dx * dx, "nu": 0.3, "density": density,
-                "gamma": 0.5, "gravity": [0.0, 0.0], "particles_per_cell": ppc},
+        "sim": {**({"dim": 3} if dim == 3 else {}), "n_grid": n, "steps": steps, "dt": DT, "E": E_CELLS * dx * dx,
+                "nu": 0.3, "density": density, "gamma": 0.5, "gravity": [0.0] * dim, "particles_per_cell": ppc},
         "control": {"stride": STRIDE},
         "optimize": {"method": "lbfgs", "iterations": q.iterations,
                      "max_seconds": q.max_seconds if seconds is None else float(seconds)},
@@ -218,7 +258,8 @@ def _weight(value) -> float:
 
 
 def _name(p0, pt) -> str:
-    name = f"morph_{p0.stem}_to_{pt.stem}"
+    stem = lambda p: (shapes.parse(p)[1] if str(p).startswith("shape:") else Path(shapes.parse(p)[1]).stem)  # noqa: E731
+    name = f"morph_{stem(p0)}_to_{stem(pt)}"
     name = "".join(c if c.isalnum() or c in "_.-" else "_" for c in name)[:NAME_MAX]
     return name if valid_name(name) else "morph"
 

@@ -1,10 +1,11 @@
 """A scene made concrete: initial particles, the loss object and its target grids, and shape metrics.
 
-`build(scene)` turns images into particles (images.sample_particles) and target grids (images.splat_grid);
+`build(scene)` turns images (2D) or 3D shapes (shapes.py: meshes, built-in shapes, extruded images) into
+particles (images.sample_particles, shapes.sample) and target grids on (res,)^dim loss grids (images.splat_grid);
 the metrics (occupied, iou, mass_outside) compare a final mass grid with a target grid for summary.json.
 Before anything large is allocated, build refuses a scene whose arrays would not fit in memory: the decoded
-images, the sampled particles (an upper bound of their number from the fitted images), the numpy target grids,
-then (memory.check_memory) the simulator's fields.
+images (2D images and extruded ones; meshes are not counted), the sampled particles (an upper bound of their
+number from the fitted shapes), the numpy target grids, then (memory.check_memory) the simulator's fields.
 """
 from __future__ import annotations
 
@@ -17,38 +18,43 @@ from .images import (DECODE_BYTES, ImageError, default_region, image_size, load_
                      pixel_of, sample_particles, splat_grid)
 from .losses import ColorLoss, MassLoss, OTLoss, PositionLoss
 from .memory import check_memory
+from .meshes import MeshError
 from .scene import SceneError
+from . import shapes
 from .scene_keys import toml_text
 
 EMPTY = 1e-6  # a target node is empty where its mass is at most EMPTY times the grid's largest
 WORD = 8  # bytes of a float64 entry
-PARTICLE_WORDS = 2 * (2 + 3)  # float64 words per sampled particle: x (2) and RGB (3), chunks and their concatenation
+PARTICLE_WORDS = {2: 2 * (2 + 3), 3: 2 * (3 + 3)}  # float64 words per sampled particle, by dim: x (dim) and RGB (3),
+# chunks and their concatenation
 GRID_TEMPORARIES = 2  # float64 words per loss-grid node of temporaries while a target grid is made
 PENALTY_IMAGE_WORDS = 6  # float64 words per loss-grid node while alpha is read from a penalty image
 
 
 @dataclass
 class Problem:
-    """What a run optimizes. Grids are indexed [i, j] = node (i / res, j / res), one per loss grid res."""
+    """What a run optimizes. Grids are indexed [i, j(, k)] = node (i, j(, k)) / res, one per loss grid res."""
 
-    x0: np.ndarray  # (N, 2) initial particle positions
-    colors: np.ndarray  # (N, 3) initial particle RGB, from the initial image
-    loss: object  # PositionLoss, MassLoss or ColorLoss
-    target_x: np.ndarray | None  # (N, 2) position-loss targets x_pu, or None
-    target_mass_grids: list  # (res, res) target mass m_iu per loss grid (also for position and color losses)
+    x0: np.ndarray  # (N, dim) initial particle positions
+    colors: np.ndarray  # (N, 3) initial particle RGB, from the initial image or shape
+    loss: object  # PositionLoss, MassLoss, ColorLoss or OTLoss
+    target_x: np.ndarray | None  # (N, dim) position-loss targets x_pu, or None
+    target_mass_grids: list  # (res,) * dim target mass m_iu per loss grid (also for position and color losses)
     res: int  # the finest loss grid's resolution
-    target_points: np.ndarray | None = None  # (M, 2) particles sampled on the target image, or None
+    target_points: np.ndarray | None = None  # (M, dim) particles sampled on the target shape, or None
     target_colors: np.ndarray | None = None  # (M, 3) their RGB, or None
-    alpha: list | None = None  # (res, res) penalty alpha_i per loss grid (eq 72), or None
+    alpha: list | None = None  # (res,) * dim penalty alpha_i per loss grid (eq 72), or None
+    notes: tuple = ()  # lines for the run's output (a repaired mesh)
 
 
 def rest_node_mass(cfg, res: int) -> float:
-    """Mass of a res-grid node deep inside a body at rest density: density / res^2 (the B-spline integrates to dx^2)."""
-    return cfg.density / res ** 2
+    """Mass of a res-grid node deep inside a body at rest density: density / res^dim (the B-spline integrates to
+    dx^dim)."""
+    return cfg.density / res ** cfg.dim
 
 
 def occupied(mass_grid, rest_node_mass, frac=0.1) -> np.ndarray:
-    """Bool grid of nodes holding more than frac of the rest node mass."""
+    """Bool grid of nodes holding more than frac of the rest node mass (the occupancy iou counts, 2D and 3D)."""
     return np.asarray(mass_grid) > frac * rest_node_mass
 
 
@@ -73,14 +79,14 @@ def mass_outside(mass, target) -> float:
 
 
 def build(scene) -> Problem:
-    """Sample the scene's images and make its loss object (thesis 5.4-5.6, 8.1, 8.2)."""
+    """Sample the scene's shapes and make its loss object (thesis 5.4-5.6, 8.1, 8.2)."""
     cfg, ls = scene.sim, scene.loss
     images = {"scene.initial": scene.initial}
     if scene.target is not None:
         images["scene.target"] = scene.target
     if not isinstance(ls.penalty, (int, float)):
         images["loss.penalty"] = ls.penalty
-    decoded = {key: _decode_bytes(scene, key, path) for key, path in images.items()}
+    decoded = {key: _decode_bytes(scene, key, text) for key, text in images.items()}
     _check_memory(scene, decoded, 0)
     initial = _load(scene, "scene.initial", scene.initial)
     target = None if scene.target is None else _load(scene, "scene.target", scene.target)
@@ -90,6 +96,7 @@ def build(scene) -> Problem:
     check_memory(cfg, n_upper, grids=loss_grids(ls), where=f"{scene.path}: ")
 
     x0, colors = _sample(scene, "scene.initial", initial)
+    notes = tuple(n for shape in (initial, target) for n in getattr(shape, "notes", ()))
     if ls.kind == "position":
         centroid = x0.mean(axis=0)
         target_x = centroid + np.asarray(ls.target_scale) * (x0 - centroid) + np.asarray(ls.target_offset)
@@ -100,7 +107,7 @@ def build(scene) -> Problem:
                              f"(they span {target_x.min(axis=0).round(4).tolist()} to "
                              f"{target_x.max(axis=0).round(4).tolist()})")
         grids = [splat_grid(target_x, cfg.m_p, res) for res in ls.grids]
-        return Problem(x0, colors, PositionLoss(target_x), target_x, grids, max(ls.grids))
+        return Problem(x0, colors, PositionLoss(target_x), target_x, grids, max(ls.grids), notes=notes)
 
     tx, tcolors = _sample(scene, "scene.target", target)
     if any(scene.target_shift):
@@ -122,7 +129,7 @@ def build(scene) -> Problem:
         if ls.penalty:
             alpha = [_alpha(scene, g) for g in grids]
         loss = MassLoss(grids, list(ls.weights), alpha, log=ls.kind == "log_mass")
-    return Problem(x0, colors, loss, None, grids, max(ls.grids), tx, tcolors, alpha)
+    return Problem(x0, colors, loss, None, grids, max(ls.grids), tx, tcolors, alpha, notes)
 
 
 def loss_grids(ls) -> list:
@@ -138,14 +145,14 @@ def loss_grids(ls) -> list:
     return [(res, channels, bool(ls.penalty)) for res in ls.grids]
 
 
-def target_grid_bytes(ls) -> int:
+def target_grid_bytes(ls, dim=2) -> int:
     """Bytes of the numpy target grids build makes: per node a mass (position and mass losses, and the metrics),
     three colour-mass channels (color loss), alpha (penalty; node positions and pixels for a penalty image),
     and temporaries."""
     image = not isinstance(ls.penalty, (int, float))
     words = 1 + (3 if ls.kind == "color" else 0) + (1 if ls.penalty else 0) + (PENALTY_IMAGE_WORDS if image else 0) \
         + GRID_TEMPORARIES
-    return sum(res * res * words * WORD for res in ls.grids)
+    return sum(res ** dim * words * WORD for res in ls.grids)
 
 
 def target_particle_mass(scene, n_body, n_target) -> float:
@@ -174,15 +181,15 @@ def _check_memory(scene, images, particles):
         return
     ls, cfg = scene.loss, scene.sim
     parts = dict(images)
-    parts["sim.n_grid"] = particles * PARTICLE_WORDS * WORD
-    parts["loss.grids"] = target_grid_bytes(ls)
+    parts["sim.n_grid"] = particles * PARTICLE_WORDS[cfg.dim] * WORD
+    parts["loss.grids"] = target_grid_bytes(ls, cfg.dim)
     if sum(parts.values()) <= limit:
         return
     key = max(parts, key=parts.get)
     need = f"about {parts[key] / 2 ** 30:.3g} GiB"
     below = f"below the limit of {limit / 2 ** 30:.3g} GiB ({words})"
     if key == "loss.grids":
-        sizes = ", ".join(f"{res}^2" for res in ls.grids)
+        sizes = ", ".join(f"{res}^{cfg.dim}" for res in ls.grids)
         default = " (sim.n_grid when loss.grids is not set)" if ls.grids == (cfg.n_grid,) else ""
         raise SceneError(f"{scene.path}: loss.grids = {toml_text(list(ls.grids))}{default}: expected loss grids whose "
                          f"target arrays fit in memory ({need} for {sizes} nodes), {below}")
@@ -193,15 +200,25 @@ def _check_memory(scene, images, particles):
     raise SceneError(f"{scene.path}: {key}: expected an image that fits in memory when decoded ({need}), {below}")
 
 
-def _decode_bytes(scene, key, path):
-    """Bytes of one image while it is decoded, from its header."""
-    width, height = _worded(scene, key, path, image_size)
+def _decode_bytes(scene, key, text):
+    """Bytes of one image (2D, or extruded in 3D) while it is decoded, from its header; 0 for other 3D shapes."""
+    if scene.sim.dim == 3 and key != "loss.penalty":
+        kind, path, _ = shapes.parse(text)
+        if kind != "extrude":
+            return 0
+        text = path
+    width, height = _worded(scene, key, text, image_size)
     return width * height * DECODE_BYTES
 
 
-def _load(scene, key, path):
-    """An image of the scene as (H, W, 4) float RGBA."""
-    return _worded(scene, key, path, load_image)
+def _load(scene, key, text):
+    """A shape of the scene: an image as (H, W, 4) float RGBA (2D), or a shapes.Solid (3D)."""
+    if scene.sim.dim == 3 and key != "loss.penalty":
+        try:
+            return shapes.solid(text, repair=scene.repair)
+        except (ImageError, MeshError, shapes.ShapeError) as e:
+            raise SceneError(f"{scene.path}: {key} = \"{text}\": expected a usable 3D shape ({e})") from None
+    return _worded(scene, key, text, load_image)
 
 
 def _worded(scene, key, path, read):
@@ -212,19 +229,24 @@ def _worded(scene, key, path, read):
         raise SceneError(f"{scene.path}: {key} = \"{path}\": expected an image file ({e})") from None
 
 
-def _particle_bound(scene, rgba):
-    return particle_bound(material(rgba), scene.sim.n_grid, scene.sim.particles_per_cell, scene.region,
-                          bound=scene.sim.bound)
+def _particle_bound(scene, shape):
+    cfg = scene.sim
+    if cfg.dim == 3:
+        return shapes.particle_bound(shape, cfg.n_grid, cfg.particles_per_cell, scene.region, bound=cfg.bound)
+    return particle_bound(material(shape), cfg.n_grid, cfg.particles_per_cell, scene.region, bound=cfg.bound)
 
 
-def _sample(scene, key, rgba):
-    """Particles of one of the scene's images, with image errors worded as scene errors."""
+def _sample(scene, key, shape):
+    """Particles of one of the scene's shapes (an image's RGBA, or a 3D shapes.Solid), with sampling errors
+    worded as scene errors."""
+    cfg = scene.sim
+    sample = shapes.sample if cfg.dim == 3 else sample_particles
     try:
-        return sample_particles(rgba, scene.sim.n_grid, scene.sim.particles_per_cell, scene.region, scene.seed,
-                                bound=scene.sim.bound)
-    except ImageError as e:
+        return sample(shape, cfg.n_grid, cfg.particles_per_cell, scene.region, scene.seed, bound=cfg.bound)
+    except (ImageError, shapes.ShapeError) as e:
         path = scene.initial if key == "scene.initial" else scene.target
-        raise SceneError(f"{scene.path}: {key} = \"{path}\": expected an image with material ({e})") from None
+        what = "a shape that holds at least one particle" if cfg.dim == 3 else "an image with material"
+        raise SceneError(f"{scene.path}: {key} = \"{path}\": expected {what} ({e})") from None
 
 
 def _alpha(scene, target):

@@ -11,7 +11,14 @@ from .checkpoint import CheckpointError, check_array, check_value, load_npz
 from .config import SimConfig
 
 STATE_KEYS = ("x", "v", "C", "F")
-STATE_SHAPES = {"x": (2,), "v": (2,), "C": (2, 2), "F": (2, 2)}  # per particle
+
+
+def state_shapes(dim=2) -> dict:
+    """Per-particle shapes of the state arrays: x, v (dim), C, F (dim, dim)."""
+    return {"x": (dim,), "v": (dim,), "C": (dim, dim), "F": (dim, dim)}
+
+
+STATE_SHAPES = state_shapes(2)  # 2D, as before dim existed
 RENDER_KEYS = ("mode", "size", "every")
 
 
@@ -36,23 +43,25 @@ def load_result(out_dir):
     except (TypeError, KeyError, ValueError) as e:
         raise CheckpointError(f"{path}: settings.sim are not a valid simulation ({e}); not a result of "
                               "`mls-mpm run`") from None
-    controls = check_array(path, arrays, "controls", "f", (None, cfg.n_controls, None, 2, 2), "result")
+    d = cfg.dim
+    controls = check_array(path, arrays, "controls", "f", (None, cfg.n_controls, None, d, d), "result")
     R, N = controls.shape[0], controls.shape[2]
+    shapes = state_shapes(d)
     for k in STATE_KEYS:
-        check_array(path, arrays, f"init_{k}", "f", (R, N, *STATE_SHAPES[k]), "result")
+        check_array(path, arrays, f"init_{k}", "f", (R, N, *shapes[k]), "result")
     check_array(path, arrays, "colors", "f", (N, 3), "result")
-    check_array(path, arrays, "final_x", "f", (N, 2), "result")
-    grid = check_array(path, arrays, "target_grid", "f", (None, None), "result")
-    check_array(path, arrays, "target_grid", "f", (grid.shape[0], grid.shape[0]), "result")
+    check_array(path, arrays, "final_x", "f", (N, d), "result")
+    grid = check_array(path, arrays, "target_grid", "f", (None,) * d, "result")
+    check_array(path, arrays, "target_grid", "f", (grid.shape[0],) * d, "result")
     losses = check_array(path, arrays, "losses", "f", (None,), "result")
     lengths = check_array(path, arrays, "round_lengths", "i", (R,), "result")
     if int(lengths.sum()) != len(losses) or R == 0:
         raise CheckpointError(f"{path}: round_lengths {lengths.tolist()} do not add up to the {len(losses)} losses "
                               f"of {R} round(s); not a result of `mls-mpm run`")
     if "target_x" in arrays:
-        check_array(path, arrays, "target_x", "f", (N, 2), "result")
+        check_array(path, arrays, "target_x", "f", (N, d), "result")
     if "target_points" in arrays or "target_colors" in arrays:
-        M = len(check_array(path, arrays, "target_points", "f", (None, 2), "result"))
+        M = len(check_array(path, arrays, "target_points", "f", (None, d), "result"))
         check_array(path, arrays, "target_colors", "f", (M, 3), "result")
     return meta, arrays
 

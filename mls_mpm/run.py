@@ -4,7 +4,7 @@ Files in the output folder, all written atomically (mode 0666 minus the umask):
   checkpoint.npz  optimizer progress (deleted when the run completes)
   result.npz      controls of every round, initial states, final state, losses (what `render` needs)
   summary.json    scene, loss_initial, loss_final, iou, mass_outside_target, iterations, converged, ...
-  frames/, animation.gif, sheet.png, loss.png   (see render_run)
+  frames/, animation.gif, sheet.png, loss.png   (see render_run; a 3D run also particles/ and meshes/)
   .lock           held by the running job (mls_mpm/lock.py), removed when it ends
 
 checkpoint.npz is rewritten at every checkpoint of the optimizer (see mls_mpm/optimize.py: after every control
@@ -13,7 +13,8 @@ the finished rounds, the initial state of the next one and the optimizer state o
 restarts from the last one written, and ends bit for bit where an uninterrupted run ends. When it records every
 round as done (the run was killed while writing its result), the resume only re-simulates the last round and
 writes the result. A run never overwrites a folder another job holds, and a finished run removes the renders an
-earlier run left there, so a folder never mixes two runs.
+earlier run left there, so a folder never mixes two runs. A 3D scene (sim.dim = 3) writes the same files, its
+arrays with dim entries per vector (x (N, 3), controls (K, N, 3, 3), target grids (res, res, res)).
 """
 import json
 import shutil
@@ -30,12 +31,14 @@ from .images import splat_grid
 from .lock import folder_lock
 from .optimize import METHODS, PAIRS_MAX, STATE, OptimizeResult
 from .schedule import BUDGET_REASON, STAGE_STATE, Stage, staged
-from .result import STATE_KEYS, STATE_SHAPES
+from .result import STATE_KEYS, state_shapes
 from .simulator import Simulator
 
 __all__ = ["OutputError", "prepare_out", "fingerprint", "run_scene"]
 
-RENDER_OUTPUTS = ("frames", "animation.gif", "sheet.png", "loss.png", "animation.mp4")  # what render_run makes
+RENDER_OUTPUTS = ("frames", "animation.gif", "sheet.png", "loss.png", "animation.mp4",  # what render_run makes
+                  "particles", "meshes")  # and, for a 3D run, its PLY sequences (export3d.PARTICLES_DIR, MESHES_DIR)
+SEQUENCE_DIRS = ("frames", "particles", "meshes")  # folders of render_run's numbered files
 MISMATCHES_SHOWN = 3  # settings named in a resume refusal before "and N more"
 
 
@@ -63,8 +66,8 @@ def fingerprint(scene):
 
 
 def _initial_state(prob):
-    N = len(prob.x0)
-    return {"x": prob.x0, "v": np.zeros((N, 2)), "C": np.zeros((N, 2, 2)), "F": np.tile(np.eye(2), (N, 1, 1))}
+    N, d = prob.x0.shape
+    return {"x": prob.x0, "v": np.zeros((N, d)), "C": np.zeros((N, d, d)), "F": np.tile(np.eye(d), (N, 1, 1))}
 
 
 def run_scene(scene, out_dir, resume=False, emit=print, should_stop=None, render=True, files=None):
@@ -103,7 +106,9 @@ def _state_kinds(scene):
 
 def _run(scene, prob, sim, out, resume, emit, should_stop, render, t0):
     cfg, opt = scene.sim, scene.optimize
-    emit(f"{scene.name}: {len(prob.x0)} particles, {cfg.n_grid}^2 grid, {cfg.steps} steps, "
+    for note in prob.notes:
+        emit(note)
+    emit(f"{scene.name}: {len(prob.x0)} particles, {cfg.n_grid}^{cfg.dim} grid, {cfg.steps} steps, "
          f"{cfg.n_controls} control steps, loss {scene.loss.kind} on grids {list(scene.loss.grids)}, "
          f"optimizer {opt.method}, {opt.rounds} round(s), on {runtime.running_arch()}")
     _remove_temp_files(out, emit)
@@ -190,6 +195,7 @@ def _finish(scene, prob, sim, done, starts, out, wall, emit):
         "stop_reason": [r.reason for r in done],
         "wall_seconds": wall,
         "particles": len(prob.x0),
+        "dim": cfg.dim,
         "backend": runtime.running_arch(),  # what Taichi ran on: "cpu", "cuda" or "vulkan"
         "settings": scene.to_dict(),
     }
@@ -220,7 +226,8 @@ def _finish(scene, prob, sim, done, starts, out, wall, emit):
 
 def _remove_temp_files(out, emit):
     """Temp files of atomic writes that a killed process left in the folder or its frames/."""
-    stale = [p for d in (out, out / "frames") if d.is_dir() for p in d.glob(TEMP_GLOB) if p.is_file()]
+    stale = [p for d in (out, *(out / n for n in SEQUENCE_DIRS)) if d.is_dir() for p in d.glob(TEMP_GLOB)
+             if p.is_file()]
     for p in stale:
         p.unlink(missing_ok=True)
     if stale:
@@ -238,7 +245,7 @@ def _remove_stale_renders(out, emit):
             p.unlink()
     if found:
         emit(f"removed the renders of an earlier run from {out}: "
-             + ", ".join(n + ("/" if n == "frames" else "") for n in found))
+             + ", ".join(n + ("/" if n in SEQUENCE_DIRS else "") for n in found))
 
 
 def _save_checkpoint(path, scene, done, starts, opt_state, elapsed):
@@ -267,8 +274,8 @@ def _load_checkpoint(path, scene, prob):
         raise CheckpointError(f"{path}: made with other scene settings ({_differences(theirs, fingerprint(scene))}); "
                               "drop --resume to start over, or use the settings it was made with")
     opt = scene.optimize
-    K, N = scene.sim.n_controls, len(prob.x0)
-    controls = (K, N, 2, 2)
+    K, N, d = scene.sim.n_controls, len(prob.x0), scene.sim.dim
+    controls = (K, N, d, d)
     rounds = meta.get("rounds")
     if not isinstance(rounds, list) or len(rounds) > opt.rounds:
         raise CheckpointError(f"{path}: rounds is {json.dumps(rounds)[:40]}: expected a list of at most {opt.rounds} "
@@ -282,20 +289,20 @@ def _load_checkpoint(path, scene, prob):
         _require_losses(path, f"rounds[{i}].losses", r["losses"])
         positions = None
         if opt.method == "positions":
-            positions = check_array(path, arrays, f"round_positions_{i}", "f", (N, 2), what)
+            positions = check_array(path, arrays, f"round_positions_{i}", "f", (N, d), what)
         done.append(OptimizeResult(check_array(path, arrays, f"round_controls_{i}", "f", controls, what),
                                    r["losses"], r["iterations"], r["converged"], r["reason"], r["grad_norms"],
                                    positions))
     n_starts = min(len(done) + 1, opt.rounds)
     for k in STATE_KEYS:
-        check_array(path, arrays, f"start_{k}", "f", (n_starts, N, *STATE_SHAPES[k]), what)
+        check_array(path, arrays, f"start_{k}", "f", (n_starts, N, *state_shapes(d)[k]), what)
     starts = [{k: arrays[f"start_{k}"][i] for k in STATE_KEYS} for i in range(n_starts)]
     opt_state = None
     if "opt" in meta and len(done) < opt.rounds:
         st = check_value(path, "opt", meta["opt"], "table", what)
         opt_state = {"loss": check_value(path, "opt.loss", st.get("loss"), "float", what),
                      "controls": check_array(path, arrays, "opt_controls", "f", controls, what)}
-        shapes = {"like_controls": controls, "particles": (N, 2), "pairs": (None, K * N * 4)}
+        shapes = {"like_controls": controls, "particles": (N, d), "pairs": (None, K * N * d * d)}
         for key, kind in _state_kinds(scene).items():
             if kind in shapes:
                 opt_state[key] = check_array(path, arrays, f"opt_{key}", "f", shapes[kind], what)

@@ -76,8 +76,8 @@ class Scene:
 
     name: str
     path: Path
-    initial: Path
-    target: Path | None
+    initial: Path | str  # an image or mesh path, or a shape text (shapes.py, 3D)
+    target: Path | str | None
     region: tuple | None
     seed: int
     target_density: str
@@ -86,6 +86,7 @@ class Scene:
     optimize: OptimizeSettings
     render: RenderSettings
     target_shift: tuple = (0.0, 0.0)  # moves the target particles (domain units), e.g. onto the body's centroid
+    repair: bool = False  # 3D: try trimesh's fill_holes on a mesh that is not watertight
 
     def to_dict(self) -> dict:
         """Every setting as plain JSON-able data, laid out like the scene file (for summary.json)."""
@@ -95,7 +96,7 @@ class Scene:
         return _plain({
             "scene": {"name": self.name, "path": self.path, "initial": self.initial, "target": self.target,
                       "region": self.region, "seed": self.seed, "target_density": self.target_density,
-                      "target_shift": self.target_shift},
+                      "target_shift": self.target_shift, "repair": self.repair},
             "sim": sim,
             "control": {"stride": stride},
             "loss": loss,
@@ -143,6 +144,10 @@ def load_scene(path, overrides=()) -> Scene:
     # [sim] and [control]
     values = {key: r.get("sim", key) for key in SPEC["sim"]}
     values["stride"] = r.get("control", "stride")
+    dim = values["dim"]
+    for key in ("gravity",):
+        if values[key] is not None and len(values[key]) != dim:
+            r.fail("sim", key, f"{dim} numbers for sim.dim = {dim}")
     if values["stride"] > values["steps"]:
         r.fail("control", "stride", f"at most sim.steps = {values['steps']}")
     least = min_n_grid(values["bound"])
@@ -163,7 +168,7 @@ def load_scene(path, overrides=()) -> Scene:
     # [scene]
     if not r.has("scene", "initial"):
         raise SceneError(f"{path}: scene.initial: missing; expected the path of the initial shape image")
-    initial = r.image("scene", "initial", r.get("scene", "initial"))
+    initial = r.shape("scene", "initial", r.get("scene", "initial"), dim)
     kind = r.get("loss", "kind")
     target = None
     if kind == "position":
@@ -174,18 +179,22 @@ def load_scene(path, overrides=()) -> Scene:
         raise SceneError(f"{path}: scene.target: missing; expected the path of the target shape image for "
                          f"loss.kind = \"{kind}\"")
     else:
-        target = r.image("scene", "target", r.get("scene", "target"))
+        target = r.shape("scene", "target", r.get("scene", "target"), dim)
     region = r.get("scene", "region")
     if region is not None:
-        lo, hi = sim.dx, 1.0 - 2.0 * sim.dx  # where a particle's 4x4 stencil fits on the grid
-        x0, y0, x1, y1 = region
-        if not (lo <= x0 < x1 <= hi and lo <= y0 < y1 <= hi):
-            r.fail("scene", "region", f"[x0, y0, x1, y1] with {lo:.4g} <= x0 < x1 <= {hi:.4g} and the same for y "
-                                      f"(dx to 1 - 2 dx at n_grid {sim.n_grid})")
+        lo, hi = sim.dx, 1.0 - 2.0 * sim.dx  # where a particle's 4^dim stencil fits on the grid
+        names = "xyz"[:dim]
+        box = f"[{', '.join(a + '0' for a in names)}, {', '.join(a + '1' for a in names)}]"
+        if len(region) != 2 * dim or not all(lo <= region[a] < region[dim + a] <= hi for a in range(dim)):
+            r.fail("scene", "region", f"{box} with {lo:.4g} <= x0 < x1 <= {hi:.4g} and the same for "
+                                      f"{' and '.join(names[1:])} (dx to 1 - 2 dx at n_grid {sim.n_grid}"
+                                      + (f", sim.dim = {dim})" if dim == 3 else ")"))
 
-    target_shift = r.get("scene", "target_shift")
+    target_shift = r.get("scene", "target_shift") or (0.0,) * dim
     if kind == "position" and r.has("scene", "target_shift"):
         r.fail("scene", "target_shift", "no target_shift with loss.kind = \"position\" (use loss.target_offset)")
+    if len(target_shift) != dim:
+        r.fail("scene", "target_shift", f"{dim} numbers for sim.dim = {dim}")
 
     # [loss]
     grids = r.get("loss", "grids") or (sim.n_grid,)
@@ -199,8 +208,11 @@ def load_scene(path, overrides=()) -> Scene:
     if kind not in ("mass", "log_mass") and penalty != 0.0:
         r.fail("loss", "penalty", f"0 with loss.kind = \"{kind}\" (penalty grids weigh the mass losses)")
     if isinstance(penalty, str):
+        if dim == 3:
+            r.fail("loss", "penalty", "a number with sim.dim = 3 (0, or >= 1 on empty target nodes; a penalty image "
+                                      "is 2D)")
         penalty = r.image("loss", "penalty", penalty)
-    moves = {key: r.get("loss", key) for key in ("target_scale", "target_offset")}
+    moves = {key: _per_axis(r, "loss", key, dim) for key in ("target_scale", "target_offset")}
     for key in moves:
         if kind != "position" and r.has("loss", key):
             r.fail("loss", key, f"no {key} with loss.kind = \"{kind}\" (it moves the position loss's targets)")
@@ -244,5 +256,17 @@ def load_scene(path, overrides=()) -> Scene:
                          f"expected {NAME_RULE}: set scene.name or rename the file")
     return Scene(name=name or path.stem, path=path, initial=initial, target=target, region=region,
                  seed=r.get("scene", "seed"), target_density=r.get("scene", "target_density"),
-                 target_shift=target_shift, sim=sim, loss=loss,
+                 target_shift=target_shift, repair=r.get("scene", "repair"), sim=sim, loss=loss,
                  optimize=optimize, render=RenderSettings(**render))
+
+
+def _per_axis(r, section, key, dim):
+    """A key of one number per axis (a number alone meaning the same on every axis, where allowed): its
+    default or a number repeated dim times, or the list, refused unless it has dim entries."""
+    value = r.get(section, key)
+    raw = r.raw.get(section, {}).get(key)
+    if not isinstance(raw, list):  # the default, or a number (2 entries as read)
+        return (value[0],) * dim
+    if len(value) != dim:
+        r.fail(section, key, f"{dim} numbers for sim.dim = {dim}")
+    return value

@@ -20,10 +20,11 @@ try:
 except ModuleNotFoundError:  # Python 3.10
     import tomli as tomllib
 
-from .config import (ARCHS, BOUNDARIES, DTYPES, GRAVITY, MAX_PARTICLES_PER_CELL, MAX_THREADS, SCHEDULES,
-                     SimConfig)
+from .config import ARCHS, BOUNDARIES, DIMS, DTYPES, MAX_PARTICLES_PER_CELL, MAX_THREADS, SCHEDULES, SimConfig
 from .errors import UserError
+from . import shapes
 from .images import ImageError, check_image
+from .meshes import is_mesh_path
 from .optimize import METHODS
 
 LOSS_KINDS = ("position", "mass", "log_mass", "color", "ot")
@@ -82,6 +83,20 @@ def _vec(n, what):
     return read, what
 
 
+def _vecs(sizes, what):
+    """A list of one of several lengths (the length for sim.dim is checked once dim is known)."""
+    reads = [_vec(n, "")[0] for n in sizes]
+
+    def read(v):
+        return next((x for x in (r(v) for r in reads) if x is not None), None)
+    return read, what
+
+
+def _dim():
+    return (lambda v: v if not isinstance(v, bool) and isinstance(v, int) and v in DIMS else None,
+            "2 or 3 (the dimension of the domain and of every vector and matrix)")
+
+
 def _str(what):
     return (lambda v: v if isinstance(v, str) and v else None, what)
 
@@ -100,13 +115,13 @@ def _name():
 
 
 def _scale():
-    pair = _vec(2, "")[0]
+    axes = _vecs((2, 3), "")[0]
     num = _num(lambda x: x > 0, "")[0]
 
     def read(v):
-        s = pair(v) if isinstance(v, list) else ((num(v),) * 2 if num(v) is not None else None)
+        s = axes(v) if isinstance(v, list) else ((num(v),) * 2 if num(v) is not None else None)
         return s if s is not None and all(x > 0 for x in s) else None
-    return read, "a number > 0 or a list [sx, sy] of numbers > 0"
+    return read, "a number > 0 or a list [sx, sy] (3D: [sx, sy, sz]) of numbers > 0"
 
 
 def _ints(least):
@@ -159,19 +174,23 @@ def _penalty():
 
 
 _SIM = {f.name: f.default for f in fields(SimConfig)}
+SHAPE_TEXTS = "a mesh path (.obj .stl .ply .off .glb), \"shape:NAME?key=value&...\" or \"extrude:IMAGE?depth=D\""
 
 # section -> key -> (default, (reader, expected)); a default of None means optional without a value.
 SPEC = {
     "scene": {
         "name": (None, _name()),
-        "initial": (None, _str("the path of the initial shape image")),
-        "target": (None, _str("the path of the target shape image")),
-        "region": (None, _vec(4, "[x0, y0, x1, y1], the box the images are fitted into")),
+        "initial": (None, _str(f"the initial shape: an image path (2D); {SHAPE_TEXTS} (3D)")),
+        "target": (None, _str(f"the target shape: an image path (2D); {SHAPE_TEXTS} (3D)")),
+        "region": (None, _vecs((4, 6), "[x0, y0, x1, y1] (2D) or [x0, y0, z0, x1, y1, z1] (3D), the box the shapes "
+                                       "are fitted into")),
         "seed": (0, _int(0)),
         "target_density": ("match", _choice(TARGET_DENSITY)),
-        "target_shift": ([0.0, 0.0], _vec(2, "a list [dx, dy] of two numbers (domain units)")),
+        "target_shift": (None, _vecs((2, 3), "a list [dx, dy] of two numbers (domain units; 3D: [dx, dy, dz], three)")),
+        "repair": (False, _bool()),
     },
     "sim": {
+        "dim": (_SIM["dim"], _dim()),
         "n_grid": (_SIM["n_grid"], _int(1)),
         "steps": (_SIM["steps"], _int(1)),
         "dt": (_SIM["dt"], _num(lambda x: x > 0, "a number > 0")),
@@ -179,7 +198,7 @@ SPEC = {
         "nu": (_SIM["nu"], _num(lambda x: 0 <= x < 0.5, "a Poisson ratio in [0, 0.5)")),
         "density": (_SIM["density"], _num(lambda x: x > 0, "a number > 0")),
         "gamma": (_SIM["gamma"], _num(lambda x: x >= 0, "a number >= 0")),
-        "gravity": ([0.0, GRAVITY], _vec(2, "a list [gx, gy] of two numbers")),
+        "gravity": (None, _vecs((2, 3), "a list [gx, gy] of two numbers (3D: [gx, gy, gz], three)")),
         "boundary": (_SIM["boundary"], _choice(BOUNDARIES)),
         "bound": (_SIM["bound"], _int(0)),
         "particles_per_cell": (_SIM["particles_per_cell"], _int(1, MAX_PARTICLES_PER_CELL)),
@@ -203,7 +222,7 @@ SPEC = {
         "mass_weights": (None, _floats_nonnegative()),
         "ot_weights": (None, _floats_nonnegative()),
         "target_scale": ([1.0, 1.0], _scale()),
-        "target_offset": ([0.0, 0.0], _vec(2, "a list [dx, dy] of two numbers")),
+        "target_offset": ([0.0, 0.0], _vecs((2, 3), "a list [dx, dy] of two numbers (3D: [dx, dy, dz], three)")),
     },
     "optimize": {
         "method": ("gd", _choice(tuple(METHODS))),
@@ -322,17 +341,45 @@ class Reader:
                     raise SceneError(f"{self.where(section, key)}: unknown key in [{section}]; "
                                      f"{_suggest_key(section, key)}")
 
-    def image(self, section, key, value):
-        """Absolute path of an image key: relative to the scene file, or to the working directory for --set."""
+    def resolve(self, section, key, value):
+        """Absolute path of a file key: relative to the scene file, or to the working directory for --set."""
         p = Path(value).expanduser()
         if not p.is_absolute():
             p = (Path.cwd() if (section, key) in self.from_set else self.path.parent) / p
-        p = p.resolve()
+        return p.resolve()
+
+    def image(self, section, key, value):
+        """Absolute path of an image key, the image checked readable (images.check_image)."""
+        p = self.resolve(section, key, value)
         try:
             check_image(p)
         except ImageError as e:
             reason = str(e).split(": ", 1)[1]
             self.fail(section, key, f"an image file ({p}: {reason})")
+        return p
+
+    def shape(self, section, key, value, dim):
+        """The initial or target shape: an image path in 2D; in 3D a mesh path (checked to exist: it is read
+        when the scene is built), or the canonical text of a built-in shape or an extruded image (shapes.py)."""
+        special = value.startswith(("shape:", "extrude:")) or is_mesh_path(value)
+        if dim == 2:
+            if special:
+                self.fail(section, key, "an image file in a 2D scene (meshes, shape: and extrude: need sim.dim = 3)")
+            return self.image(section, key, value)
+        try:
+            kind, body, params = shapes.parse(value)
+        except shapes.ShapeError as e:
+            self.fail(section, key, f"a shape ({e})")
+        if kind == "shape":
+            return shapes.text_of(kind, body, params)
+        if kind == "extrude":
+            return shapes.text_of(kind, self.image(section, key, body), params)
+        p = self.resolve(section, key, body)
+        if not is_mesh_path(p):
+            self.fail(section, key, f"{SHAPE_TEXTS} in a 3D scene (a 2D image needs extrude:, e.g. "
+                                    f"\"extrude:{value}\")")
+        if not p.is_file():
+            self.fail(section, key, f"a mesh file ({p}: {'no such mesh file' if not p.exists() else 'not a file'})")
         return p
 
 

@@ -479,10 +479,10 @@ def test_shipped_scene_loads_and_builds(path):
     assert N > 500 and p.colors.shape == (N, 3) and s.sim.dt <= s.sim.cfl_dt
     assert p.res == max(s.loss.grids) and len(p.target_mass_grids) == len(s.loss.grids)
     for grid, res in zip(p.target_mass_grids, s.loss.grids):
-        assert grid.shape == (res, res)
+        assert grid.shape == (res,) * s.sim.dim  # the *_3d scenes: (res, res, res)
         assert grid.sum() == pytest.approx(N * s.sim.m_p, rel=1e-9)  # "match", and every shape is well inside
     if s.loss.kind == "position":
-        assert isinstance(p.loss, PositionLoss) and p.target_x.shape == (N, 2)
+        assert isinstance(p.loss, PositionLoss) and p.target_x.shape == (N, s.sim.dim)
     else:
         assert isinstance(p.loss, ColorLoss if s.loss.kind == "color" else MassLoss)
     json.dumps(s.to_dict())
