@@ -36,7 +36,7 @@ def make_sim(cfg, x0):
                 ids=["2d-serial", "2d-parallel", "3d-parallel"])
 def free_sim(request):
     """No gravity, no drag, far from the walls: nothing external acts (walls start 3 cells from the edge; the
-    disk spans [0.35, 0.65] and moves < 0.02 in 30 steps; the 3D ball [0.3, 0.7], 12 steps). Both schedules in
+    disk spans [0.35, 0.65] and moves < 0.02 in 30 steps; the 3D ball [0.34, 0.66], 12 steps). Both schedules in
     2D; in 3D the parallel one (the serial one runs the same per-particle and per-node bodies)."""
     dim, schedule = request.param
     cfg = scene_config(dim=dim, gravity=(0.0,) * dim, gamma=0.0, schedule=schedule)
@@ -336,14 +336,14 @@ def test_config_accepts_the_limits():
 def test_extruded_shape_matches_2d():
     """A 2D disk extruded along z into a slab of 23 particle layers one cell apart, run in 3D with each layer
     carrying its 2D particle's control (blockdiag(F_pc, 0)), gravity in the xy plane and drag, matches the 2D run
-    of the disk on the slab's middle layer: x, y, v, C, F of the 2D run to rel err 1e-12 at steps 1 and 2.
+    of the disk on the slab's middle layer: x, y, v, C, F of the 2D run to rel err 1e-12 at steps 1 to 4.
 
     Why it must: layers spaced dx apart sum the cubic B-spline to 1 along z (partition of unity) and reproduce
     linear functions, so away from the slab's ends every 3D node holds dx times the 2D node's mass and momentum,
     and the 3D stress of blockdiag(F, 1) is the 2D stress in its xy block (the cofactor's xy block is the 2D
     cofactor). The free faces at the ends (11 cells from the middle) reach it through at most 4 cells of
-    stencil a step (P2G 2, G2P 2), so the first two steps are exact to round-off; at step 4 they are not
-    (asserted, so the slab is long enough to matter and the middle layer really is the one compared).
+    stencil a step (P2G 2, G2P 2), so the first steps are exact to round-off; measured: 2e-15 at steps 1-3 and
+    7e-14 at step 4, where the ends' influence has arrived but is still at round-off (asserted up to step 4).
     """
     steps, stride, n = 4, 2, 32
     cfg2 = scene_config(n_grid=n, steps=steps, stride=stride, schedule="serial")
@@ -370,10 +370,8 @@ def test_extruded_shape_matches_2d():
         err = max(rel_err(b["x"][mid, :2], a["x"]), rel_err(b["v"][mid, :2], a["v"]),
                   rel_err(b["C"][mid, :2, :2], a["C"]), rel_err(b["F"][mid, :2, :2], a["F"]))
         errors.append(err)
-        if f <= 2:
-            assert err <= 1e-12, (f, err)
-            assert np.abs(b["x"][mid, 2] - layers[middle]).max() <= 1e-14  # no motion along z in the middle
-    assert errors[-1] > 1e-10, errors  # the ends have reached the middle by step 4
+        assert err <= 1e-12, (f, err)
+        assert np.abs(b["x"][mid, 2] - layers[middle]).max() <= 1e-14  # no motion along z in the middle
 
 
 def test_config_defaults_by_dimension():
