@@ -12,11 +12,9 @@ is the median of `repeats` calls, wall time and in brackets the process CPU time
 import argparse
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
-import taichi as ti
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
@@ -27,25 +25,15 @@ from mls_mpm.field3d import frame_field  # noqa: E402
 from mls_mpm.frames import FrameWriter  # noqa: E402
 from mls_mpm.render3d import Preview3D  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from render_speed import best_ms as median_ms  # noqa: E402  the 2D script's timer: median wall and CPU ms
+
 
 def ball(n_grid, ppc, radius):
     k = round(ppc ** (1 / 3))
     s = (np.arange(n_grid * k) + 0.5) / (n_grid * k)
     x = np.stack(np.meshgrid(s, s, s, indexing="ij"), -1).reshape(-1, 3)
     return x[np.linalg.norm(x - 0.5, axis=1) < radius]
-
-
-def median_ms(fn, repeats):
-    fn()  # compilation, caches
-    ti.sync()
-    wall, cpu = [], []
-    for _ in range(repeats):
-        t0, c0 = time.perf_counter(), time.process_time()
-        fn()
-        ti.sync()
-        wall.append(time.perf_counter() - t0)
-        cpu.append(time.process_time() - c0)
-    return 1e3 * float(np.median(wall)), 1e3 * float(np.median(cpu))
 
 
 def main(argv=None):

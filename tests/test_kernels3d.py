@@ -64,6 +64,24 @@ def directional(adjoints, d):
     return sum(float(np.sum(adjoints[k] * d[k])) for k in d)
 
 
+def assert_matches_central_difference(s, L, adj, z0, inputs, f, rng):
+    """<adj, d> against (L(z + eps d) - L(z - eps d)) / (2 eps) along a random unit direction d of the fields
+    `inputs` at step f (z0: their values, restored afterwards)."""
+    d = unit(rng, {k: z0[k][f].shape for k in inputs})
+
+    def at(sign):
+        for k in inputs:
+            z = z0[k].copy()
+            z[f] += sign * EPS * d[k]
+            getattr(s, k).from_numpy(z)
+        return L()
+
+    plus, minus = at(1.0), at(-1.0)
+    for k in inputs:
+        getattr(s, k).from_numpy(z0[k])
+    assert agree(directional(adj, d), (plus - minus) / (2 * EPS), max(abs(plus), abs(minus)))
+
+
 def unit(rng, shapes):
     d = {k: rng.standard_normal(shape) for k, shape in shapes.items()}
     norm = np.sqrt(sum(np.sum(v * v) for v in d.values()))
@@ -94,19 +112,7 @@ def test_g2p_reverse_matches_central_differences(pair3, f, inputs):
     g2p_reverse(s, a, f)
     adj = {"x": a.adj_x.to_numpy()[dst], "F": a.adj_F.to_numpy()[dst], "grid_v": a.adj_grid_v.to_numpy()}
     z0 = {"x": s.x.to_numpy(), "F": s.F.to_numpy(), "grid_v": s.grid_v.to_numpy()}
-    d = unit(rng, {k: z0[k][f].shape for k in inputs})
-
-    def at(sign):
-        for k in inputs:
-            z = z0[k].copy()
-            z[f] += sign * EPS * d[k]
-            getattr(s, k).from_numpy(z)
-        return L()
-
-    plus, minus = at(1.0), at(-1.0)
-    for k in inputs:
-        getattr(s, k).from_numpy(z0[k])
-    assert agree(directional(adj, d), (plus - minus) / (2 * EPS), max(abs(plus), abs(minus)))
+    assert_matches_central_difference(s, L, adj, z0, inputs, f, rng)
 
 
 @pytest.mark.parametrize("f", [CONTROL_STEP, PLAIN_STEP])
@@ -137,19 +143,7 @@ def test_p2g_reverse_matches_central_differences(pair3, f, inputs):
     if f % pair.cfg.stride == 0:  # eq 55: the control's adjoint is dL/d(F + F_pc)
         assert np.array_equal(a.adj_F_pc.to_numpy()[f // pair.cfg.stride], adj["F"])
     z0 = {k: getattr(s, k).to_numpy() for k in ("x", "v", "C", "F")}
-    d = unit(rng, {k: z0[k][f].shape for k in inputs})
-
-    def at(sign):
-        for k in inputs:
-            z = z0[k].copy()
-            z[f] += sign * EPS * d[k]
-            getattr(s, k).from_numpy(z)
-        return L()
-
-    plus, minus = at(1.0), at(-1.0)
-    for k in inputs:
-        getattr(s, k).from_numpy(z0[k])
-    assert agree(directional(adj, d), (plus - minus) / (2 * EPS), max(abs(plus), abs(minus)))
+    assert_matches_central_difference(s, L, adj, z0, inputs, f, rng)
 
 
 @pytest.mark.parametrize("gi", range(4), ids=["mass fine alpha", "mass coarse", "log mass fine alpha", "color fine"])
@@ -173,13 +167,4 @@ def test_loss_seed_matches_central_differences(pair3, gi):
     a.adj_x.fill(0.0)
     grid_loss_reverse(s, g)
     splat_reverse(s, g, a, f)
-    adj = a.adj_x.to_numpy()[f % 2]
-    d = unit(rng, {"x": x[f].shape})["x"]
-    values = []
-    for sign in (1.0, -1.0):
-        z = x.copy()
-        z[f] += sign * EPS * d
-        s.x.from_numpy(z)
-        values.append(L())
-    s.x.from_numpy(x)
-    assert agree(float(np.sum(adj * d)), (values[0] - values[1]) / (2 * EPS), max(map(abs, values)))
+    assert_matches_central_difference(s, L, {"x": a.adj_x.to_numpy()[f % 2]}, {"x": x}, ("x",), f, rng)
