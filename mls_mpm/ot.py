@@ -12,8 +12,14 @@ with the cost C(x, y) = |x - y|^2 / 2. The entropic transport cost with blur sig
 is computed in its dual form by the log-domain Sinkhorn iteration. Its Gibbs kernel exp(-C / eps) is
 separable on a grid (Solomon et al. 2015, "Convolutional Wasserstein distances"), so one iteration is one 1D
 log-sum-exp blur per axis: res^(dim + 1) work, not the (res^dim)^2 of the dense kernel. The blur starts at
-the grid's diameter and shrinks geometrically to sigma (eps-scaling), then iterates at sigma until the
-potentials stop changing.
+the grid's diameter and shrinks geometrically to sigma (eps-scaling, one symmetric averaged update of all four
+potentials per blur, as Feydy et al. 2019), then iterates at sigma until the potentials stop changing: the self
+potentials f_aa, g_bb by their symmetric averaged update (a contraction: tens of iterations), the cross pair
+f_ba, g_ab by alternating, over-relaxed updates g <- (1 - w) g + w T(g) with w = RELAX (Thibault, Chizat,
+Dossal and Papadakis 2017, "Overrelaxed Sinkhorn-Knopp"): 7-15 times fewer iterations than the averaged update
+at the same tolerance (four morph-suite pairs at 32^2 and 64^2, tol 1e-5: 41-146 against 286-2,261; the
+same divergence to 1e-12 at tol 1e-12). Should the over-relaxed iteration not halve its change within
+RELAX_PATIENCE iterations, it falls back to w = 1 (plain alternating Sinkhorn, which converges for any marginals).
 
 The debiased divergence S(a, b) = OT(a, b) - OT(a, a) / 2 - OT(b, b) / 2 [+ eps (|a| - |b|)^2 / 2] is zero
 for a = b, positive otherwise, and tends to the exact transport cost as sigma -> 0 (Feydy et al. 2019;
@@ -111,13 +117,18 @@ def _epsilons(res: int, dim: int, blur: float, scaling: float) -> list:
     return out
 
 
+RELAX = 1.5  # over-relaxation of the cross potentials' updates at the final blur (1: plain alternating Sinkhorn)
+RELAX_PATIENCE = 100  # iterations within which the over-relaxed change must halve, else RELAX falls back to 1
+
+
 def sinkhorn_divergence(a, b, blur: float, reach: float | None = None, scaling: float = 0.7, tol: float = 1e-9,
-                        max_iterations: int = 10000) -> SinkhornResult:
+                        max_iterations: int = 10000, relax: float = RELAX) -> SinkhornResult:
     """S(a, b) and dS/da for two non-negative mass grids of the same shape (res,) * dim.
 
     blur: sigma = sqrt(eps) in domain units (the grid spans [0, 1) per axis); reach: None for the balanced
     divergence of a / |a| and b / |b|, else the unbalanced one with rho = reach^2, on the masses themselves;
-    tol: stop when no potential changes by more than tol * eps in an iteration at the final blur.
+    tol: stop when no potential changes by more than tol * eps in an iteration at the final blur (for each of
+    the two loops there, at most max_iterations); relax: the cross potentials' over-relaxation, in (0, 2).
     """
     a = np.asarray(a, np.float64)
     b = np.asarray(b, np.float64)
@@ -145,28 +156,40 @@ def sinkhorn_divergence(a, b, blur: float, reach: float | None = None, scaling: 
     lam = damp(eps)
     f_ba, g_ab = lam * softmin(log_b, eps), lam * softmin(log_a, eps)
     f_aa, g_bb = g_ab.copy(), f_ba.copy()
-    iterations, change = 0, math.inf
+    iterations = 0
 
-    def step(eps, f_ba, g_ab, f_aa, g_bb):
-        lam = damp(eps)
-        return (lam * softmin(log_b + g_ab / eps, eps), lam * softmin(log_a + f_ba / eps, eps),
-                lam * softmin(log_a + f_aa / eps, eps), lam * softmin(log_b + g_bb / eps, eps))
+    def soft(log_w, potential, eps):
+        return damp(eps) * softmin(log_w + potential / eps, eps)
 
-    schedule = list(epsilons)
-    while True:
-        if schedule:
-            eps = schedule.pop(0)
-        elif change <= tol or iterations >= max_iterations:
-            break
-        new = step(eps, f_ba, g_ab, f_aa, g_bb)
-        old = (f_ba, g_ab, f_aa, g_bb)
-        f_ba, g_ab, f_aa, g_bb = (0.5 * (o + n) for o, n in zip(old, new))  # symmetric averaged updates
+    for eps in epsilons:  # eps-scaling: one symmetric averaged update of all four potentials per blur
+        new = (soft(log_b, g_ab, eps), soft(log_a, f_ba, eps), soft(log_a, f_aa, eps), soft(log_b, g_bb, eps))
+        f_ba, g_ab, f_aa, g_bb = (0.5 * (o + n) for o, n in zip((f_ba, g_ab, f_aa, g_bb), new))
         iterations += 1
-        if not schedule:
-            change = max(_largest_change(o, n, w) for o, n, w in zip(old, (f_ba, g_ab, f_aa, g_bb),
-                                                                      (a, b, a, b))) / eps
+    change_self = change = math.inf
+    for _ in range(max_iterations):  # the self potentials, each its own symmetric averaged fixed point
+        if change_self <= tol:
+            break
+        new_aa, new_bb = 0.5 * (f_aa + soft(log_a, f_aa, eps)), 0.5 * (g_bb + soft(log_b, g_bb, eps))
+        change_self = max(_largest_change(f_aa, new_aa, a), _largest_change(g_bb, new_bb, b)) / eps
+        f_aa, g_bb = new_aa, new_bb
+        iterations += 1
+    w, checkpoint = relax, math.inf
+    for k in range(max_iterations):  # the cross pair: alternating updates, over-relaxed by w
+        if change <= tol:
+            break
+        if k % RELAX_PATIENCE == 0:
+            if change > 0.5 * checkpoint:
+                w = 1.0  # not halving: plain alternating updates from here on
+            checkpoint = change
+        new_ba = (1.0 - w) * f_ba + w * soft(log_b, g_ab, eps)
+        new_ab = (1.0 - w) * g_ab + w * soft(log_a, new_ba, eps)
+        change = max(_largest_change(f_ba, new_ba, a), _largest_change(g_ab, new_ab, b)) / eps
+        f_ba, g_ab = new_ba, new_ab
+        iterations += 1
+    change = max(change, change_self)
     # final extrapolation at the last blur (not averaged), as in Feydy et al.
-    f_ba, g_ab, f_aa, g_bb = step(eps, f_ba, g_ab, f_aa, g_bb)
+    f_ba, g_ab, f_aa, g_bb = (soft(log_b, g_ab, eps), soft(log_a, f_ba, eps), soft(log_a, f_aa, eps),
+                              soft(log_b, g_bb, eps))
     if balanced:
         value = float(np.sum(a * (f_ba - f_aa)) + np.sum(b * (g_ab - g_bb)))
         F = f_ba - f_aa
