@@ -16,13 +16,12 @@ from .contour import draw_outline
 from .kernels import STENCIL
 from .sampling import (clear, live_box, mass_field, real_dtype, row_stencil, sample, sample_columns, sample_live,
                        sample_pixel, splat_mass, splat_particle, upload_grid)
-from .scene import RENDER_MODES
+from .scene import RENDER_BACKGROUNDS as BACKGROUNDS, RENDER_MODES
 
 BODY_COLOR = (0.85, 0.1, 0.1)  # particles of the body (Fig 3: red)
 TARGET_COLOR = (0.0, 0.6, 0.0)  # target positions (Fig 3: green)
 TARGET_OUTLINE_COLOR = (0.0, 0.0, 0.0)  # contour of the target mass grid
 BODY_OUTLINE_COLOR = (0.35, 0.35, 0.35)  # contour of the body at the "empty" threshold
-BACKGROUNDS = ("white", "transparent")  # render.background: a white frame, or one with an alpha channel
 
 
 @ti.kernel

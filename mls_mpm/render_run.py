@@ -112,8 +112,9 @@ def render_run(out_dir, mode=None, size=None, every=None, arch=None, emit=print,
     for i in (0, len(paths) // 2, len(paths) - 1):
         with Image.open(paths[i]) as im:
             panels.append(np.asarray(on_white(im)))
-    panels.append(_target_panel(renderer, arrays, cfg, settings) if dim == 2 else
-                  _target_panel_3d(renderer, arrays, cfg, settings))
+    target = (_target_panel(renderer, arrays, cfg, settings) if dim == 2 else
+              _target_panel_3d(renderer, arrays, cfg, settings))
+    panels.append(np.asarray(on_white(Image.fromarray(target))))  # a transparent frame's target too
     save_png(sheet(panels, ["initial", "middle", "final", "target"]), out / "sheet.png")
     loss_plot(arrays["losses"], out / "loss.png")
     return paths

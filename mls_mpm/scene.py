@@ -16,10 +16,11 @@ except ModuleNotFoundError:  # Python 3.10
     import tomli as tomllib
 
 from .config import CFLWarning, ConfigError, SimConfig, min_n_grid
-from .scene_keys import (NAME_RULE, RENDER_MODES, RENDER_SIZE_MAX, RENDER_SIZE_MIN, SPEC, SceneError, toml_text,
+from .export3d import MODES_3D
+from .scene_keys import (NAME_RULE, RENDER_BACKGROUNDS, RENDER_MODES, RENDER_SIZE_MAX, RENDER_SIZE_MIN, SPEC, SceneError, toml_text,
                          Reader, parse_override, valid_name)
 
-__all__ = ["RENDER_MODES", "RENDER_SIZE_MAX", "RENDER_SIZE_MIN", "SPEC", "LossSettings", "OptimizeSettings",
+__all__ = ["RENDER_BACKGROUNDS", "RENDER_MODES", "RENDER_SIZE_MAX", "RENDER_SIZE_MIN", "SPEC", "LossSettings", "OptimizeSettings",
            "RenderSettings", "Scene", "SceneError", "load_scene", "parse_override"]
 
 
@@ -65,9 +66,10 @@ class RenderSettings:
 
     every: int = 5
     size: int = 512
-    mode: str = "mass"
+    mode: str = "mass"  # 2D: mass | color | particles; 3D: surface | volume | particles (mass, color: surface)
     gif: bool = True
     outline: bool = False
+    background: str = "white"  # 2D PNG frames: "white", or "transparent" (an alpha channel, for compositing)
 
 
 @dataclass(frozen=True)
@@ -249,6 +251,12 @@ def load_scene(path, overrides=()) -> Scene:
     render = {key: r.get("render", key) for key in SPEC["render"]}
     if render["mode"] is None:
         render["mode"] = "color" if kind == "color" else "mass"
+    elif dim == 2 and render["mode"] not in RENDER_MODES:
+        r.fail("render", "mode", "one of " + ", ".join(f'"{m}"' for m in RENDER_MODES) + " with sim.dim = 2 ("
+               + ", ".join(f'"{m}"' for m in MODES_3D if m not in RENDER_MODES) + ": 3D runs only)")
+    if dim == 3 and render["background"] != "white":
+        r.fail("render", "background", '"white" with sim.dim = 3 (the 3D preview is drawn on white; "transparent" '
+                                       "is for 2D frames)")
 
     name = r.get("scene", "name")
     if name is None and not valid_name(path.stem):

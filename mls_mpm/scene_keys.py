@@ -22,6 +22,7 @@ except ModuleNotFoundError:  # Python 3.10
 
 from .config import ARCHS, BOUNDARIES, DIMS, DTYPES, MAX_PARTICLES_PER_CELL, MAX_THREADS, SCHEDULES, SimConfig
 from .errors import UserError
+from .export3d import MODES_3D
 from . import shapes
 from .images import ImageError, check_image
 from .meshes import is_mesh_path
@@ -29,7 +30,8 @@ from .optimize import METHODS
 
 LOSS_KINDS = ("position", "mass", "log_mass", "color", "ot")
 STEPS = ("normalized", "raw")
-RENDER_MODES = ("mass", "color", "particles")
+RENDER_MODES = ("mass", "color", "particles")  # 2D runs
+RENDER_BACKGROUNDS = ("white", "transparent")  # 2D frames on white, or with an alpha channel (for compositing)
 RENDER_SIZE_MIN = 16  # render.size and `render --size` in pixels
 RENDER_SIZE_MAX = 8192
 TARGET_DENSITY = ("match", "own")
@@ -242,7 +244,8 @@ SPEC = {
     "render": {
         "every": (5, _int(1)),
         "size": (512, _int(RENDER_SIZE_MIN, RENDER_SIZE_MAX)),
-        "mode": (None, _choice(RENDER_MODES)),
+        "mode": (None, _choice(RENDER_MODES + tuple(m for m in MODES_3D if m not in RENDER_MODES))),
+        "background": ("white", _choice(RENDER_BACKGROUNDS)),
         "gif": (True, _bool()),
         "outline": (False, _bool()),
     },

@@ -49,6 +49,10 @@ def scene(tmp_path):
     ('scene.name=".."', r'scene\.name = "\.\." \(from --set\): expected a name of letters'),
     ('scene.name="../../x"', r'scene\.name = "\.\./\.\./x" \(from --set\): expected a name of letters'),
     ("render.size=100000", r"render\.size = 100000 \(from --set\): expected an integer in \[16, 8192\]"),
+    ('render.mode="volume"', r'render\.mode = "volume" \(from --set\): expected one of "mass", "color", "particles" '
+                             r'with sim\.dim = 2 \("surface", "volume": 3D runs only\)$'),
+    ('render.background="black"', r'render\.background = "black" \(from --set\): expected one of "white", '
+                                  r'"transparent"$'),
     ("sim.particles_per_cell=1000000000000000000000000000000", r"sim\.particles_per_cell = 10{30} \(from --set\): "
                                                                 r"expected an integer in \[1, 1024\]"),
     ("sim.threads=1000000000000000000000000000000", r"sim\.threads = 10{30} \(from --set\): expected an integer in "

@@ -193,3 +193,23 @@ def test_a_folder_mixing_two_runs_is_refused(folder, change, message):
         render_run(folder, emit=lambda *_: None)
     assert str(e.value).startswith(f"{folder}: {message}") and "\n" not in str(e.value)
     assert_old_frames_kept(folder, before)
+
+
+def test_scene_key_render_background_transparent_gives_frames_with_alpha(tmp_path):
+    """render.background = "transparent" (a scene key): every frame is RGBA, its corners (no body) fully
+    transparent and the body opaque; the sheet and the GIF stay on white."""
+    from PIL import Image
+
+    out = tmp_path / "clear"
+    scene = load_scene(TINY, ["optimize.iterations=0", "render.background=transparent"])
+    assert scene.render.background == "transparent" and scene.to_dict()["render"]["background"] == "transparent"
+    run_scene(scene, out, emit=lambda *_: None, render=False)
+    paths = render_run(out, emit=lambda *_: None)
+    assert [p.name for p in paths] == FRAMES
+    for path in paths:
+        with Image.open(path) as im:
+            assert im.mode == "RGBA"
+            a = np.asarray(im)[..., 3]
+        assert a[0, 0] == a[0, -1] == a[-1, 0] == a[-1, -1] == 0 and a.max() == 255
+    with Image.open(out / "sheet.png") as im:
+        assert im.mode == "RGB"

@@ -53,6 +53,13 @@ def test_3d_defaults(tmp_path):
     assert d["sim"]["dim"] == 3 and d["scene"]["repair"] is False and d["scene"]["target_shift"] == [0.0] * 3
 
 
+@pytest.mark.parametrize("mode", ["surface", "volume", "particles", "mass"])
+def test_3d_render_mode_key_takes_the_3d_modes(tmp_path, mode):
+    s = load_scene(write(tmp_path, BASE + f'[render]\nmode = "{mode}"\n'))
+    assert s.render.mode == mode and s.render.background == "white"
+    assert s.to_dict()["render"]["mode"] == mode
+
+
 def test_3d_build_makes_cubic_target_grids_of_the_body_mass(tmp_path):
     s = load_scene(write(tmp_path, BASE.replace("n_grid = 16", "n_grid = 24").replace("[8, 16]", "[12, 24]")))
     p = build(s)
@@ -161,6 +168,10 @@ def open_mesh(path):
      r"scene\.target_shift = \[0\.1, 0\.0\]: expected 3 numbers for sim\.dim = 3$"),
     ("shape:sphere", None, f"[loss]\npenalty = \"{IMAGES / 'circle.png'}\"",
      r"loss\.penalty = .*: expected a number with sim\.dim = 3"),
+    ("shape:sphere", None, "[render]\nbackground = \"transparent\"",
+     r'render\.background = "transparent": expected "white" with sim\.dim = 3 \(the 3D preview is drawn on white'),
+    ("shape:sphere", None, "[render]\nmode = \"glass\"",
+     r'render\.mode = "glass": expected one of "mass", "color", "particles", "surface", "volume"$'),
 ])
 def test_bad_3d_input_is_one_line_exit_2_nothing_written(capsys, tmp_path, initial, make, extra, pattern):
     if make:
@@ -168,7 +179,7 @@ def test_bad_3d_input_is_one_line_exit_2_nothing_written(capsys, tmp_path, initi
     text = BASE.replace('"shape:sphere?r=0.3"', f'"{initial}"')
     if extra:
         section, line = extra.split("\n", 1)
-        text = edit(text, section.strip("[]"), line)
+        text = edit(text, section.strip("[]"), line) if section in text else f"{text}{section}\n{line}\n"
     scene = write(tmp_path, text)
     message = refused(capsys, tmp_path, "run", scene, "--no-render", "--out", tmp_path / "out")
     assert message.startswith(str(scene)) or str(tmp_path) in message
