@@ -86,3 +86,19 @@ def test_a_reset_outside_the_runtime_is_seen():
     ti.init(arch=ti.cpu, default_fp=ti.f64, log_level=ti.ERROR)
     with pytest.raises(StaleSimulatorError, match="re-initialised for f64 on cpu"):
         sim.state(0)
+
+
+@pytest.mark.parametrize("dim, n_grid, particles, threads, serial", [
+    (2, 64, 8192, 2, True),  # 2D on 2 threads: serial measured faster up to 64k particles (BENCHMARKS.md)
+    (2, 128, 64000, 1, True),
+    (2, 256, 64000, 2, False),  # 65,536 nodes + 64,000 particles: past SERIAL_BELOW_2D_TWO_THREADS
+    (2, 64, 8192, 4, False),  # more threads: the general SERIAL_BELOW (4,000 particles + nodes)
+    (2, 32, 1000, 8, True),
+    (3, 32, 17157, 2, False),  # 3D: the parallel schedule measured faster (17k particles, 32^3)
+    (3, 12, 300, 2, True),
+])
+def test_auto_schedule_choice(dim, n_grid, particles, threads, serial):
+    cfg = mls_mpm.SimConfig(dim=dim, n_grid=n_grid, threads=threads)
+    assert cfg.serial(particles) is serial
+    assert cfg.lanes(particles) == (0 if serial else threads)
+    assert mls_mpm.SimConfig(dim=dim, n_grid=n_grid, threads=threads, schedule="parallel").serial(particles) is False
