@@ -109,7 +109,7 @@ def build_parser():
     morph.add_argument("--out", help="output folder (default: renders/morph_<initial>_to_<target>/)")
     morph.add_argument("--quality", choices=["fast", "default", "best"], default="default",
                        help="fast: a 32^2 preview within ~30 s; default: 64^2 within ~2 minutes; best: 64^2, "
-                            "250 iterations, no time budget")
+                            "800 iterations, no time budget")
     morph.add_argument("--seconds", type=positive, help="wall-clock budget of the optimization, compile included "
                                                         "(default: 25 fast, 110 default, none best)")
     morph.add_argument("--loss", choices=["auto", "mass", "color"], default="auto",
