@@ -484,7 +484,7 @@ def test_shipped_scene_loads_and_builds(path):
     if s.loss.kind == "position":
         assert isinstance(p.loss, PositionLoss) and p.target_x.shape == (N, s.sim.dim)
     else:
-        assert isinstance(p.loss, ColorLoss if s.loss.kind == "color" else MassLoss)
+        assert isinstance(p.loss, {"color": ColorLoss, "ot": OTLoss}.get(s.loss.kind, MassLoss))
     json.dumps(s.to_dict())
 
 
