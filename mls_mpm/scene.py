@@ -17,11 +17,11 @@ except ModuleNotFoundError:  # Python 3.10
 
 from .config import CFLWarning, ConfigError, SimConfig, min_n_grid
 from .export3d import MODES_3D
-from .scene_keys import (NAME_RULE, RENDER_BACKGROUNDS, RENDER_MODES, RENDER_SIZE_MAX, RENDER_SIZE_MIN, SPEC, SceneError, toml_text,
-                         Reader, parse_override, valid_name)
+from .scene_keys import (NAME_RULE, RENDER_BACKGROUNDS, RENDER_MODES, RENDER_SIZE_MAX, RENDER_SIZE_MIN, SPEC,
+                         SceneError, toml_text, Reader, parse_override, valid_name)
 
-__all__ = ["RENDER_BACKGROUNDS", "RENDER_MODES", "RENDER_SIZE_MAX", "RENDER_SIZE_MIN", "SPEC", "LossSettings", "OptimizeSettings",
-           "RenderSettings", "Scene", "SceneError", "load_scene", "parse_override"]
+__all__ = ["RENDER_BACKGROUNDS", "RENDER_MODES", "RENDER_SIZE_MAX", "RENDER_SIZE_MIN", "SPEC", "LossSettings",
+           "OptimizeSettings", "RenderSettings", "Scene", "SceneError", "load_scene", "parse_override"]
 
 
 @dataclass(frozen=True)
