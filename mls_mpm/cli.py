@@ -115,6 +115,9 @@ def build_parser():
     morph.add_argument("--loss", choices=["auto", "mass", "color"], default="auto",
                        help="auto: the colour loss when both images have more than one colour region, else "
                             "optimal transport + mass")
+    morph.add_argument("--dim", type=int, choices=[2, 3],
+                       help="2 or 3 (default: 3 when INITIAL or TARGET is a mesh, shape: or extrude:, else 2); "
+                            "--dim 3 with a 2D image asks for extrude:IMAGE")
     morph.add_argument("--keep-position", action="store_true",
                        help="keep the target where its image puts it (default: moved onto the body's centre of "
                             "mass, which internal controls cannot move)")
@@ -253,7 +256,7 @@ def cmd_morph(args):
 
     arch = [f"sim.arch={args.arch}"] if args.arch else []
     choice = choose(args.initial, args.target, args.quality, args.loss, args.seconds, list(args.set) + arch,
-                    args.keep_position)
+                    args.keep_position, dim=args.dim)
     out = Path(args.out) if args.out else Path("renders") / choice.name
     with tempfile.TemporaryDirectory() as tmp:  # validated before anything is written
         path = Path(tmp) / "scene.toml"

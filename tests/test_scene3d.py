@@ -227,3 +227,26 @@ def test_morph_refuses_bad_3d_input_in_one_line(capsys, tmp_path, initial, patte
     import re
     message = refused(capsys, tmp_path, "morph", initial, "shape:sphere", "--out", tmp_path / "m", "--no-render")
     assert re.search(pattern, message), message
+
+
+@pytest.mark.parametrize("initial, target, dim, pattern", [
+    (IMAGES / "circle.png", IMAGES / "torus.png", "3",
+     r"INITIAL .*circle\.png: expected a 3D shape \(.*circle\.png: expected a mesh \(\.obj \.stl \.ply \.off \.glb\), "
+     r"shape:NAME or extrude:IMAGE\)$"),
+    ("shape:sphere", "shape:torus", "2", r"INITIAL shape:sphere: expected an image file"),
+])
+def test_morph_dim_flag_refuses_inputs_of_the_other_dimension(capsys, tmp_path, initial, target, dim, pattern):
+    """`--dim 3` takes 3D shapes only (a 2D image needs extrude:), `--dim 2` images only: one line, exit 2."""
+    import re
+    message = refused(capsys, tmp_path, "morph", initial, target, "--dim", dim, "--out", tmp_path / "m",
+                      "--no-render")
+    assert re.search(pattern, message), message
+
+
+def test_morph_dim_flag_is_parsed():
+    from mls_mpm.cli import build_parser
+    p = build_parser()
+    assert p.parse_args(["morph", "a", "b"]).dim is None
+    assert p.parse_args(["morph", "a", "b", "--dim", "3"]).dim == 3
+    with pytest.raises(SystemExit):
+        p.parse_args(["morph", "a", "b", "--dim", "4"])
