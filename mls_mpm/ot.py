@@ -157,6 +157,7 @@ def sinkhorn_divergence(a, b, blur: float, reach: float | None = None, scaling: 
     f_ba, g_ab = lam * softmin(log_b, eps), lam * softmin(log_a, eps)
     f_aa, g_bb = g_ab.copy(), f_ba.copy()
     iterations = 0
+    has_a, has_b = a > 0, b > 0  # the nodes whose potentials enter the value
 
     def soft(log_w, potential, eps):
         return damp(eps) * softmin(log_w + potential / eps, eps)
@@ -170,7 +171,7 @@ def sinkhorn_divergence(a, b, blur: float, reach: float | None = None, scaling: 
         if change_self <= tol:
             break
         new_aa, new_bb = 0.5 * (f_aa + soft(log_a, f_aa, eps)), 0.5 * (g_bb + soft(log_b, g_bb, eps))
-        change_self = max(_largest_change(f_aa, new_aa, a), _largest_change(g_bb, new_bb, b)) / eps
+        change_self = max(_largest_change(f_aa, new_aa, has_a), _largest_change(g_bb, new_bb, has_b)) / eps
         f_aa, g_bb = new_aa, new_bb
         iterations += 1
     w, checkpoint = relax, math.inf
@@ -183,7 +184,7 @@ def sinkhorn_divergence(a, b, blur: float, reach: float | None = None, scaling: 
             checkpoint = change
         new_ba = (1.0 - w) * f_ba + w * soft(log_b, g_ab, eps)
         new_ab = (1.0 - w) * g_ab + w * soft(log_a, new_ba, eps)
-        change = max(_largest_change(f_ba, new_ba, a), _largest_change(g_ab, new_ab, b)) / eps
+        change = max(_largest_change(f_ba, new_ba, has_a), _largest_change(g_ab, new_ab, has_b)) / eps
         f_ba, g_ab = new_ba, new_ab
         iterations += 1
     change = max(change, change_self)
@@ -202,7 +203,7 @@ def sinkhorn_divergence(a, b, blur: float, reach: float | None = None, scaling: 
     return SinkhornResult(value, grad, iterations, float(change))
 
 
-def _largest_change(old, new, weight):
-    """Largest |new - old| over nodes with mass (potentials on empty nodes do not enter the value)."""
-    mask = weight > 0
+def _largest_change(old, new, mask):
+    """Largest |new - old| over the nodes of mask, those with mass (potentials on empty nodes do not enter the
+    value)."""
     return float(np.max(np.abs(new[mask] - old[mask]), initial=0.0))
