@@ -141,6 +141,8 @@ def sinkhorn_divergence(a, b, blur: float, reach: float | None = None, scaling: 
         raise ValueError(f"a, b: expected some mass in both grids, got total masses {mass_a:g} and {mass_b:g}")
     if not blur > 0 or (reach is not None and not reach > 0):
         raise ValueError(f"blur = {blur!r}, reach = {reach!r}: expected numbers > 0 (reach: or None)")
+    if not 0.0 < relax < 2.0:
+        raise ValueError(f"relax = {relax!r}: expected a number in (0, 2) (1: plain alternating updates)")
     balanced = reach is None
     if balanced:
         a, b = a / mass_a, b / mass_b

@@ -194,3 +194,10 @@ def test_over_relaxation_falls_back_when_it_does_not_halve_the_change(monkeypatc
     monkeypatch.setattr(mot, "RELAX_PATIENCE", 1)
     r = sinkhorn_divergence(a, b, 1 / 12, tol=TOL, relax=1.999)
     assert r.change <= TOL and abs(r.value - plain.value) <= 1e-10 * abs(plain.value)
+
+
+@pytest.mark.parametrize("relax", [0.0, 2.0, -1.0, float("nan")])
+def test_relaxation_outside_its_interval_is_refused(relax):
+    a, b = random_pair((8, 8), 7)
+    with pytest.raises(ValueError, match=r"relax = .*: expected a number in \(0, 2\)"):
+        sinkhorn_divergence(a, b, 1 / 8, relax=relax)
