@@ -17,6 +17,7 @@ earlier run left there, so a folder never mixes two runs. A 3D scene (sim.dim = 
 arrays with dim entries per vector (x (N, 3), controls (K, N, 3, 3), target grids (res, res, res)).
 """
 import json
+import math
 import shutil
 import time
 from pathlib import Path
@@ -118,9 +119,13 @@ def _run(scene, prob, sim, out, resume, emit, should_stop, render, t0):
         done, starts, opt_state, elapsed = _load_checkpoint(ckpt, scene, prob)
         emit(f"resuming from {ckpt}: " + (f"round {len(done) + 1} of {opt.rounds}" if len(done) < opt.rounds
                                           else "every round is done; writing the result"))
-    method = staged(METHODS[opt.method], stages(scene), opt.max_seconds, t0 - elapsed)
+    deadline = t0 - elapsed + opt.max_seconds if opt.max_seconds > 0 else math.inf
     while len(done) < opt.rounds:
         r = len(done)
+        now = time.perf_counter()
+        # the budget left is split evenly over the rounds left; what a round leaves unused goes to the later ones
+        seconds = max((deadline - now) / (opt.rounds - r), 1e-9) if math.isfinite(deadline) else 0.0
+        method = staged(METHODS[opt.method], stages(scene), seconds, now)
         sim.set_initial(**starts[r])
 
         def on_checkpoint(state):
@@ -135,7 +140,7 @@ def _run(scene, prob, sim, out, resume, emit, should_stop, render, t0):
             emit(f"interrupted: progress saved to {ckpt}; continue with --resume")
             return {"scene": scene.name, "interrupted": True, "wall_seconds": elapsed + time.perf_counter() - t0}
         done.append(res)
-        if res.reason == BUDGET_REASON:
+        if res.reason == BUDGET_REASON and time.perf_counter() >= deadline:
             emit(f"stopped at the time budget of {opt.max_seconds:g} s after {len(done)} of {opt.rounds} round(s)")
             break
         if len(done) < opt.rounds:

@@ -358,6 +358,21 @@ def test_a_run_past_its_budget_writes_its_result(tmp_path):
     assert summary["loss_final"] == L_final
 
 
+def test_rounds_share_the_budget(tmp_path):
+    """optimize.max_seconds with rounds = 2: each round gets half of what is left when it starts (it used to
+    be the first round's alone, which spent it and left none for the second); a round stopped by its share
+    of the budget is followed by the next round."""
+    lines = []
+    scene = scene_of("optimize.max_seconds=6", "optimize.iterations=100000", "optimize.rounds=2")
+    fresh_taichi()
+    summary = run_scene(scene, tmp_path, emit=lines.append, render=False)
+    assert summary["stop_reason"] == [BUDGET_REASON, BUDGET_REASON]
+    assert summary["wall_seconds"] < 6 + 5  # the budget, plus the last iteration and the result
+    assert any(line.startswith("round 2/2") for line in lines)
+    _, arrays = load_npz(tmp_path / "result.npz", "result")
+    assert arrays["controls"].shape[0] == 2 and all(n > 1 for n in arrays["round_lengths"])
+
+
 # ---------------------------------------------------------------------------------------------------------
 # Scene keys
 
