@@ -93,16 +93,12 @@ def quality_section():
 
 
 def machine():
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as fh:
-            names = [ln.split(":", 1)[1].strip() for ln in fh if ln.startswith("model name")]
-        cpu = f"{names[0]} x {len(names)}" if names else cpu
-    except OSError:
-        pass
     import taichi
 
-    return f"{cpu}; Python {platform.python_version()}; Taichi {'.'.join(map(str, taichi.__version__))}; {platform.system()}"
+    from mls_mpm.bench.gradient import cpu_model
+
+    taichi_version = ".".join(map(str, taichi.__version__))
+    return f"{cpu_model()}; Python {platform.python_version()}; Taichi {taichi_version}; {platform.system()}"
 
 
 def main(argv=None):

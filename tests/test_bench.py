@@ -169,7 +169,8 @@ def test_bench_gradient_writes_out_after_the_check(tmp_path, monkeypatch):
     out = tmp_path / "g.md"
     bench_gradient(quick=True, out=out, emit=lambda *_: None, dims=(2,))
     table = out.read_text().splitlines()
-    assert table[0].startswith("Taichi CPU, 2 threads.") and len(table) == 6
+    assert table[0].startswith(f"Taichi CPU, 2 threads; CPU: {gradient.cpu_model()}. Memory:") and len(table) == 6
+    assert " x " in gradient.cpu_model()  # the model name and the number of logical CPUs
     assert table[4].endswith("| 1.000 | 8.19 M | 1.200 | 1.20 | 4.400 | 2.00 | 60 | 160 | 0.38 |")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["g.md"]
     # both dimensions: the 3D rows have no Tape (2D only), then the 3D / 2D throughput and the window's time

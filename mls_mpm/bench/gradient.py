@@ -4,9 +4,11 @@ Each measurement runs in its own process (child.py), and every ratio is taken be
 the same invocation. Compile time is excluded by a warm-up pass, and the compiler's memory by running each
 child twice (the first fills Taichi's offline cache).
 """
+import os
+import platform
 import subprocess
 
-from .child import CASES, THREADS, backend_here, run_child
+from .child import CASES, THREADS, backend_here, case_label, case_steps, run_child
 from .output import writable_file
 
 
@@ -36,7 +38,7 @@ def bench_gradient(quick=False, emit=print, arch="cpu", out=None, dims=(2, 3)):
         if case.get("dim", 2) not in dims:
             continue
         case = dict(case, arch=arch)
-        steps = min(case["steps"], 40 if case.get("dim", 2) == 2 else 10) if quick else case["steps"]
+        steps = case_steps(case, quick)
         man = warm(case, "manual", steps)
         # the Tape differentiates the 2D kernels only (Simulator.gradient_tape refuses 3D and says why)
         tape = warm(case, "tape", steps) if case.get("dim", 2) == 2 else None
@@ -50,7 +52,7 @@ def bench_gradient(quick=False, emit=print, arch="cpu", out=None, dims=(2, 3)):
               "Taichi and the compiled kernels), i.e. the memory the data needs" if backend == "cpu" else
               "not measured (the fields live in device memory; the estimate of the preallocated fields is in "
               "the scaling table)")
-    say(f"{where}. Memory: {memory}.\n")
+    say(f"{where}; CPU: {cpu_model()}. Memory: {memory}.\n")
     say("| case | fwd ms/step | particle-steps/s | manual bwd ms/step | bwd / fwd | Tape fwd+bwd ms/step | "
         "Tape / manual (fwd+bwd) | manual MiB | Tape MiB | manual / Tape memory |")
     say("|---|---|---|---|---|---|---|---|---|---|")
@@ -67,12 +69,8 @@ def bench_gradient(quick=False, emit=print, arch="cpu", out=None, dims=(2, 3)):
         else:
             mem = f"{m_man:.0f} | - | -" if backend == "cpu" else "- | - | -"
             taped = "- (2D only) | -"
-        dim = case.get("dim", 2)
-        label = f"{case['dtype']}, {case['n_grid']}^{dim} grid, {case['particles']} particles, {steps} steps"
-        if case.get("window"):
-            label += " (one window of the 3D successor's settings)"
-        say(f"| {label} | {fwd:.3f} | {case['particles'] / fwd * 1e3 / 1e6:.2f} M | {bwd:.3f} | {bwd / fwd:.2f} | "
-            f"{taped} | {mem} |")
+        say(f"| {case_label(case, steps)} | {fwd:.3f} | {case['particles'] / fwd * 1e3 / 1e6:.2f} M | {bwd:.3f} | "
+            f"{bwd / fwd:.2f} | {taped} | {mem} |")
     speed = {name: case["particles"] / man["forward_ms"] for name, case, _, man, _ in rows}  # particle-steps/ms
     if "large" in speed and "3d" in speed:
         say(f"\n3D forward particle-steps/s (f32, 32^3) / 2D (f32, 64^2), this run: {speed['3d'] / speed['large']:.2f} "
@@ -100,3 +98,22 @@ def _device_name(backend):
         except (OSError, subprocess.TimeoutExpired):
             pass
     return "device name not known" if backend == "cuda" else "a Vulkan device"
+
+
+def cpu_model():
+    """The CPU beside every figure: "model name x logical CPUs" from /proc/cpuinfo, else lscpu's model name."""
+    try:
+        with open("/proc/cpuinfo") as fh:
+            names = [ln.split(":", 1)[1].strip() for ln in fh if ln.startswith("model name")]
+        if names:
+            return f"{names[0]} x {len(names)}"
+    except OSError:
+        pass
+    try:
+        res = subprocess.run(["lscpu"], capture_output=True, text=True, timeout=30)
+        names = [ln.split(":", 1)[1].strip() for ln in res.stdout.splitlines() if ln.startswith("Model name:")]
+        if names:
+            return f"{names[0]} x {os.cpu_count()}"
+    except (OSError, subprocess.TimeoutExpired):
+        pass
+    return f"{platform.processor() or platform.machine() or 'model not known'} x {os.cpu_count()}"
