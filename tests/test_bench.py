@@ -5,12 +5,16 @@ where there is no GPU. The figures themselves are in BENCHMARKS.md.
 """
 import csv
 import importlib.util
+import os
+import signal
+import subprocess
+import tempfile
 from pathlib import Path
 
 import pytest
 
 from mls_mpm import runtime
-from mls_mpm.bench import bench_gradient, gradient
+from mls_mpm.bench import against, bench_against, bench_gradient, gradient
 from mls_mpm.bench.tradeoff import FIELDS, _retry, measure, pareto, rows_for
 from mls_mpm.cli import build_parser, main
 from mls_mpm.runtime import ArchError
@@ -92,6 +96,8 @@ def test_bench_options_parse():
     p = build_parser()
     a = p.parse_args(["bench", "gradient", "--arch", "vulkan", "--out", "g.md"])
     assert (a.what, a.arch, a.out, a.max_seconds) == ("gradient", "vulkan", "g.md", None)
+    a = p.parse_args(["bench", "gradient", "--against", "HEAD~3", "--repeats", "2", "--quick"])
+    assert (a.against, a.repeats, a.quick) == ("HEAD~3", 2, True)
     a = p.parse_args(["bench", "tradeoff", "s.toml", "--max-seconds", "60"])
     assert (a.what, a.scene, a.arch, a.max_seconds) == ("tradeoff", "s.toml", "cpu", 60.0)
 
@@ -105,6 +111,10 @@ def test_bench_options_parse():
     (["bench", "tradeoff", "s.toml", "--max-seconds", "inf"], "bench tradeoff: --max-seconds inf: expected seconds > 0"),
     (["bench", "gradient", "s.toml"], "bench gradient: SCENE s.toml: a scene applies to bench tradeoff only; drop it"),
     (["bench", "scaling", "s.toml", "--quick"], "bench scaling: SCENE s.toml: a scene applies to bench tradeoff only"),
+    (["bench", "scaling", "--against", "HEAD"], "bench scaling: --against applies to bench gradient only; drop it"),
+    (["bench", "gradient", "--repeats", "2"], "bench gradient: --repeats applies to bench gradient --against REV only"),
+    (["bench", "gradient", "--against", "HEAD", "--repeats", "0"],
+     "bench: argument --repeats: expected an integer >= 1"),
 ])
 def test_bench_options_that_do_not_apply_are_refused(argv, says, capsys):
     """One line, exit 2, before anything is measured (no scene is read: s.toml does not exist)."""
@@ -132,7 +142,7 @@ def nothing_measured(monkeypatch):
     import mls_mpm.bench.scaling as scaling
 
     for module, name in [(gradient, "backend_here"), (gradient, "run_child"), (child_module, "run_child"),
-                         (scaling, "run_child")]:
+                         (scaling, "run_child"), (against, "backend_here"), (against, "run_child")]:
         monkeypatch.setattr(module, name, child)
 
 
@@ -181,3 +191,101 @@ def test_bench_gradient_writes_out_after_the_check(tmp_path, monkeypatch):
     assert any(line.startswith("3D forward particle-steps/s (f32, 32^3) / 2D (f32, 64^2), this run: 2.00") for line in table)
     assert any(line.startswith("One 10-step window of the 3D successor's settings (17157 particles, 32^3): forward + "
                                "manual backward 0.02 s") for line in table)
+
+
+def git(*args):
+    return subprocess.run(["git", "-C", str(ROOT), *args], capture_output=True, text=True)
+
+
+needs_git = pytest.mark.skipif(git("rev-parse", "--show-toplevel").returncode != 0, reason="not a git checkout")
+TINY_CASE = {"tiny": dict(dtype="f32", n_grid=16, particles=64, steps=2)}  # at the tiny size: its own memory base
+
+
+@pytest.fixture
+def temp_here(tmp_path, monkeypatch):
+    """tempfile's folder (where --against makes its worktree) is tmp_path, so that leftovers can be seen."""
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    return tmp_path
+
+
+@needs_git
+@pytest.mark.slow  # six children of about 3 s each
+def test_against_head_measures_both_trees_alternately(temp_here):
+    """Each child imports its own tree's mls_mpm; warm-ups, then old and new in turn; the table's ratios are those
+    of its figures; the temporary worktree is gone afterwards, from the disk and from git's list."""
+    lines, said = [], []
+    out = temp_here / "against.md"
+    (row,) = bench_against("HEAD", repeats=2, out=out, emit=lines.append, progress=said.append, cases=TINY_CASE)
+    old = Path(row["runs"]["old"][0]["mls_mpm"]).parents[1]
+    assert old.parent.parent == temp_here and old.parent.name.startswith("mls-mpm-against-")
+    assert [r["mls_mpm"] for r in row["runs"]["old"]] == [str(old / "mls_mpm" / "__init__.py")] * 2
+    assert [r["mls_mpm"] for r in row["runs"]["new"]] == [str(ROOT / "mls_mpm" / "__init__.py")] * 2
+    assert [text.split(": ")[-1] for text in said] == [
+        f"old ({old}), warm-up", f"new ({ROOT}), warm-up", f"old ({old}), repeat 1/2", f"new ({ROOT}), repeat 1/2",
+        f"old ({old}), repeat 2/2", f"new ({ROOT}), repeat 2/2"]
+    assert not old.exists() and sorted(temp_here.iterdir()) == [out]
+    assert str(old) not in git("worktree", "list", "--porcelain").stdout
+
+    head = git("rev-parse", "--short", "HEAD").stdout.strip()
+    assert lines[0].startswith(f"Taichi CPU, 2 threads; CPU: {gradient.cpu_model()}; old: HEAD = {head}; new: the "
+                               f"working tree at {head}")
+    assert lines[1].startswith("Each figure: the minimum over 2 runs of each, alternating old and new")
+    assert [c.strip() for c in lines[3].strip("|").split("|")] == [
+        "case", "old fwd ms/step", "new fwd ms/step", "fwd speed-up", "old bwd ms/step", "new bwd ms/step",
+        "bwd speed-up", "old bwd / fwd", "new bwd / fwd", "old MiB", "new MiB"]
+    cells = [c.strip() for c in lines[5].strip("|").split("|")]
+    assert len(lines) == 6 and cells[0] == "f32, 16^2 grid, 64 particles, 2 steps"
+    fwd_old, fwd_new, fwd_up, bwd_old, bwd_new, bwd_up, ratio_old, ratio_new = map(float, cells[1:9])
+    assert fwd_old == pytest.approx(min(r["forward_ms"] for r in row["runs"]["old"]), abs=5e-4)
+    assert bwd_new == pytest.approx(min(r["backward_ms"] for r in row["runs"]["new"]), abs=5e-4)
+    assert fwd_up == pytest.approx(fwd_old / fwd_new, rel=0.01, abs=0.01)
+    assert bwd_up == pytest.approx(bwd_old / bwd_new, rel=0.01, abs=0.01)
+    assert (ratio_old, ratio_new) == pytest.approx((bwd_old / fwd_old, bwd_new / fwd_new), rel=0.01, abs=0.01)
+    assert cells[9:] == ["0", "0"]  # the tiny case is its own baseline
+    assert out.read_text().splitlines() == lines
+
+
+@needs_git
+@pytest.mark.parametrize("stop", ["ctrl-c", "sigterm"])
+def test_against_removes_its_worktree_when_stopped(stop, temp_here, monkeypatch):
+    trees = []
+
+    def stopped(case, path, steps, tiny=False, tree=None):
+        trees.append(tree)
+        assert (tree / "mls_mpm" / "bench" / "child.py").is_file()
+        if stop == "sigterm":
+            os.kill(os.getpid(), signal.SIGTERM)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(against, "run_child", stopped)
+    previous = signal.getsignal(signal.SIGTERM)
+    with pytest.raises(SystemExit if stop == "sigterm" else KeyboardInterrupt) as e:
+        bench_against("HEAD", cases=TINY_CASE, emit=lambda *_: None, progress=lambda *_: None)
+    assert stop == "ctrl-c" or e.value.code == 143
+    assert len(trees) == 1 and not trees[0].exists() and list(temp_here.iterdir()) == []
+    assert str(trees[0]) not in git("worktree", "list", "--porcelain").stdout
+    assert signal.getsignal(signal.SIGTERM) == previous
+
+
+@needs_git
+@pytest.mark.parametrize("rev, says", [
+    ("no-such-rev", "no-such-rev: not a revision of the repository at {ROOT}; expected a commit, branch or tag"),
+    ("-x", "-x: not a revision of the repository"),
+    ("root", "{root}: revision {root10} has no mls_mpm/bench/child.py measure(case, path, steps) to run"),
+])
+def test_against_a_bad_revision_is_refused_before_measuring(rev, says, temp_here, capsys, nothing_measured):
+    root = git("rev-list", "--max-parents=0", "HEAD").stdout.split()[0]
+    rev = root if rev == "root" else rev
+    worktrees = git("worktree", "list").stdout
+    assert main(["bench", "gradient", f"--against={rev}"]) == 2
+    err = capsys.readouterr().err
+    says = says.format(ROOT=ROOT, root=root, root10=root[:10])
+    assert err.startswith(f"mls-mpm: error: bench gradient --against {says}") and len(err.splitlines()) == 1, err
+    assert list(temp_here.iterdir()) == [] and git("worktree", "list").stdout == worktrees
+
+
+@needs_git
+def test_against_output_refused_before_the_worktree(temp_here, capsys, nothing_measured):
+    assert main(["bench", "gradient", "--against", "HEAD", "--out", "/proc/t.md"]) == 2
+    assert "--out /proc/t.md: folder /proc is not writable" in capsys.readouterr().err
+    assert list(temp_here.iterdir()) == []

@@ -26,6 +26,7 @@ CASES = {
     "3d window": dict(dim=3, dtype="f32", n_grid=32, particles=17157, steps=30, window=True),
 }
 THREADS = 2
+TINY_PARTICLES, TINY_STEPS = 64, 2  # run_child(tiny=True): the process without the fields' memory
 WINDOW_CELLS = 8  # radius of the ball of the "3d window" case, in cells
 
 
@@ -114,8 +115,8 @@ def run_child(case_name, path, steps, tiny=False, tree=None):
     `measure` it calls, first on PYTHONPATH and its working folder (default: whatever this interpreter finds)."""
     case = dict(CASES[case_name]) if isinstance(case_name, str) else dict(case_name)
     if tiny:
-        case.update(particles=64)
-        steps = 2
+        case.update(particles=TINY_PARTICLES)
+        steps = TINY_STEPS
     code = ("import json, mls_mpm; print(json.dumps({'mls_mpm': mls_mpm.__file__}), flush=True); "
             f"from mls_mpm.bench.child import measure; measure({case!r}, {path!r}, {steps})")
     env = {**os.environ, "TI_LOG_LEVEL": "error"}

@@ -8,8 +8,11 @@ import os
 import platform
 import subprocess
 
-from .child import CASES, THREADS, backend_here, case_label, case_steps, run_child
+from .child import CASES, THREADS, TINY_PARTICLES, TINY_STEPS, backend_here, case_label, case_steps, run_child
 from .output import writable_file
+
+MEMORY_CPU = (f"peak RSS of the path's process minus that of the same path at {TINY_PARTICLES} particles and "
+              f"{TINY_STEPS} steps (Python, Taichi and the compiled kernels), i.e. the memory the data needs")
 
 
 def bench_gradient(quick=False, emit=print, arch="cpu", out=None, dims=(2, 3)):
@@ -47,12 +50,10 @@ def bench_gradient(quick=False, emit=print, arch="cpu", out=None, dims=(2, 3)):
             if tape:
                 tape["peak_mib"] -= warm(case, "tape", steps, tiny=True)["peak_mib"]
         rows.append((name, case, steps, man, tape))
-    where = f"Taichi CPU, {THREADS} threads" if backend == "cpu" else f"Taichi {backend} ({_device_name(backend)})"
-    memory = ("peak RSS of the path's process minus that of the same path at 64 particles and 2 steps (Python, "
-              "Taichi and the compiled kernels), i.e. the memory the data needs" if backend == "cpu" else
+    memory = (MEMORY_CPU if backend == "cpu" else
               "not measured (the fields live in device memory; the estimate of the preallocated fields is in "
               "the scaling table)")
-    say(f"{where}; CPU: {cpu_model()}. Memory: {memory}.\n")
+    say(f"{taichi_where(backend)}; CPU: {cpu_model()}. Memory: {memory}.\n")
     say("| case | fwd ms/step | particle-steps/s | manual bwd ms/step | bwd / fwd | Tape fwd+bwd ms/step | "
         "Tape / manual (fwd+bwd) | manual MiB | Tape MiB | manual / Tape memory |")
     say("|---|---|---|---|---|---|---|---|---|---|")
@@ -85,6 +86,11 @@ def bench_gradient(quick=False, emit=print, arch="cpu", out=None, dims=(2, 3)):
 
         atomic_write(out, lambda fh: fh.write(("\n".join(lines) + "\n").encode()))
     return rows
+
+
+def taichi_where(backend):
+    """What the children ran on: "Taichi CPU, 2 threads" or "Taichi cuda (the GPU's name)"."""
+    return f"Taichi CPU, {THREADS} threads" if backend == "cpu" else f"Taichi {backend} ({_device_name(backend)})"
 
 
 def _device_name(backend):
