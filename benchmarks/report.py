@@ -95,10 +95,11 @@ def quality_section():
 def machine():
     import taichi
 
-    from mls_mpm.bench.gradient import cpu_model
+    from mls_mpm.bench.child import cpu_model
 
     taichi_version = ".".join(map(str, taichi.__version__))
-    return f"{cpu_model()}; Python {platform.python_version()}; Taichi {taichi_version}; {platform.system()}"
+    python = platform.python_version()
+    return f"{cpu_model()} x {os.cpu_count()}; Python {python}; Taichi {taichi_version}; {platform.system()}"
 
 
 def main(argv=None):

@@ -15,6 +15,7 @@ import pytest
 
 from mls_mpm import runtime
 from mls_mpm.bench import against, bench_against, bench_gradient, gradient
+from mls_mpm.bench.child import cpu_model
 from mls_mpm.bench.tradeoff import FIELDS, _retry, measure, pareto, rows_for
 from mls_mpm.cli import build_parser, main
 from mls_mpm.runtime import ArchError
@@ -179,8 +180,8 @@ def test_bench_gradient_writes_out_after_the_check(tmp_path, monkeypatch):
     out = tmp_path / "g.md"
     bench_gradient(quick=True, out=out, emit=lambda *_: None, dims=(2,))
     table = out.read_text().splitlines()
-    assert table[0].startswith(f"Taichi CPU, 2 threads; CPU: {gradient.cpu_model()}. Memory:") and len(table) == 6
-    assert " x " in gradient.cpu_model()  # the model name and the number of logical CPUs
+    cpu = f"CPU: {cpu_model()} ({os.cpu_count()} logical CPUs)"
+    assert table[0].startswith(f"Taichi CPU, 2 threads; {cpu}. Memory:") and len(table) == 6
     assert table[4].endswith("| 1.000 | 8.19 M | 1.200 | 1.20 | 4.400 | 2.00 | 60 | 160 | 0.38 |")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["g.md"]
     # both dimensions: the 3D rows have no Tape (2D only), then the 3D / 2D throughput and the window's time
@@ -227,8 +228,8 @@ def test_against_head_measures_both_trees_alternately(temp_here):
     assert str(old) not in git("worktree", "list", "--porcelain").stdout
 
     head = git("rev-parse", "--short", "HEAD").stdout.strip()
-    assert lines[0].startswith(f"Taichi CPU, 2 threads; CPU: {gradient.cpu_model()}; old: HEAD = {head}; new: the "
-                               f"working tree at {head}")
+    cpu = f"CPU: {cpu_model()} ({os.cpu_count()} logical CPUs)"
+    assert lines[0].startswith(f"Taichi CPU, 2 threads; {cpu}; old: HEAD = {head}; new: the working tree at {head}")
     assert lines[1].startswith("Each figure: the minimum over 2 runs of each, alternating old and new")
     assert [c.strip() for c in lines[3].strip("|").split("|")] == [
         "case", "old fwd ms/step", "new fwd ms/step", "fwd speed-up", "old bwd ms/step", "new bwd ms/step",

@@ -1,6 +1,6 @@
 """Benchmarks behind `mls-mpm bench gradient | scaling | tradeoff | quality` (their figures are in BENCHMARKS.md).
 
-    child.py     one measurement in a process of its own; the benchmark cases; the probe of a backend
+    child.py     one measurement in a process of its own; the benchmark cases; probes of the backend, the CPU
     gradient.py  forward, manual backward and ti.ad.Tape speed and memory (`bench gradient`)
     against.py   a git revision and the working tree side by side (`bench gradient --against REV`)
     scaling.py   the same against particles, steps and grid, and scaling.png (`bench scaling`)

@@ -19,7 +19,7 @@ import threading
 from pathlib import Path
 
 from .child import CASES, TINY_PARTICLES, TINY_STEPS, backend_here, case_label, case_steps, run_child
-from .gradient import MEMORY_CPU, cpu_model, taichi_where
+from .gradient import MEMORY_CPU, measured_on
 from .output import BenchError, writable_file
 
 ROOT = Path(__file__).resolve().parents[2]  # the source tree this package is imported from: the working tree
@@ -71,7 +71,7 @@ def _table(rows, repeats, backend, revisions):
     """The header lines and the markdown table: per case both trees' least ms/step, the speed-ups, bwd / fwd and
     the memory of each (CPU only)."""
     memory = MEMORY_CPU if backend == "cpu" else "not measured (the fields live in device memory)"
-    lines = [f"{taichi_where(backend)}; CPU: {cpu_model()}; {revisions}.",
+    lines = [f"{measured_on(backend)}; {revisions}.",
              f"Each figure: the minimum over {repeats} runs of each, alternating old and new after a warm-up run of "
              f"each; speed-up: old ms / new ms (> 1: new is faster). Memory (manual path): {memory}.", "",
              "| case | old fwd ms/step | new fwd ms/step | fwd speed-up | old bwd ms/step | new bwd ms/step | "

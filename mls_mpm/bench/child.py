@@ -1,16 +1,19 @@
 """One measurement in a child process of its own (peak memory is per process): the benchmark cases, the
-scene each runs, and the probe of a backend.
+scene each runs, and the probes of the backend and the CPU model.
 
 `run_child(case, path, steps)` starts `measure` in a fresh interpreter and reads back its JSON line: the
 forward and manual backward ms/step ("manual") or ti.ad.Tape's forward+backward ms/step ("tape"), the
-process's peak RSS and the backend it ran on. Compile time is excluded by a warm-up pass.
+process's peak RSS and the backend it ran on (and the mls_mpm it imported: `tree` picks the source tree whose
+code it runs). Compile time is excluded by a warm-up pass.
 """
 import json
 import os
+import platform
 import resource
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -155,3 +158,21 @@ def backend_here(arch):
     if res.returncode:
         raise ArchError((res.stderr.strip().splitlines() or ["?"])[-1].split(": ", 1)[-1])
     return res.stdout.split()[-1]
+
+
+def cpu_model():
+    """The CPU's model name: "model name" in /proc/cpuinfo, else lscpu's "Model name", else what the platform says."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    try:
+        res = subprocess.run(["lscpu"], capture_output=True, text=True, timeout=30)
+        for line in res.stdout.splitlines():
+            if line.startswith("Model name:"):
+                return line.split(":", 1)[1].strip()
+    except (OSError, subprocess.TimeoutExpired):
+        pass
+    return platform.processor() or platform.machine() or "unknown CPU"

@@ -5,10 +5,10 @@ the same invocation. Compile time is excluded by a warm-up pass, and the compile
 child twice (the first fills Taichi's offline cache).
 """
 import os
-import platform
 import subprocess
 
-from .child import CASES, THREADS, TINY_PARTICLES, TINY_STEPS, backend_here, case_label, case_steps, run_child
+from .child import (CASES, THREADS, TINY_PARTICLES, TINY_STEPS, backend_here, case_label, case_steps, cpu_model,
+                    run_child)
 from .output import writable_file
 
 MEMORY_CPU = (f"peak RSS of the path's process minus that of the same path at {TINY_PARTICLES} particles and "
@@ -53,7 +53,7 @@ def bench_gradient(quick=False, emit=print, arch="cpu", out=None, dims=(2, 3)):
     memory = (MEMORY_CPU if backend == "cpu" else
               "not measured (the fields live in device memory; the estimate of the preallocated fields is in "
               "the scaling table)")
-    say(f"{taichi_where(backend)}; CPU: {cpu_model()}. Memory: {memory}.\n")
+    say(f"{measured_on(backend)}. Memory: {memory}.\n")
     say("| case | fwd ms/step | particle-steps/s | manual bwd ms/step | bwd / fwd | Tape fwd+bwd ms/step | "
         "Tape / manual (fwd+bwd) | manual MiB | Tape MiB | manual / Tape memory |")
     say("|---|---|---|---|---|---|---|---|---|---|")
@@ -88,9 +88,11 @@ def bench_gradient(quick=False, emit=print, arch="cpu", out=None, dims=(2, 3)):
     return rows
 
 
-def taichi_where(backend):
-    """What the children ran on: "Taichi CPU, 2 threads" or "Taichi cuda (the GPU's name)"."""
-    return f"Taichi CPU, {THREADS} threads" if backend == "cpu" else f"Taichi {backend} ({_device_name(backend)})"
+def measured_on(backend):
+    """What the children ran on, said beside every figure: "Taichi CPU, 2 threads; CPU: model (n logical CPUs)",
+    on a GPU "Taichi cuda (the GPU's name); CPU: ..."."""
+    taichi = f"Taichi CPU, {THREADS} threads" if backend == "cpu" else f"Taichi {backend} ({_device_name(backend)})"
+    return f"{taichi}; CPU: {cpu_model()} ({os.cpu_count()} logical CPUs)"
 
 
 def _device_name(backend):
@@ -104,22 +106,3 @@ def _device_name(backend):
         except (OSError, subprocess.TimeoutExpired):
             pass
     return "device name not known" if backend == "cuda" else "a Vulkan device"
-
-
-def cpu_model():
-    """The CPU beside every figure: "model name x logical CPUs" from /proc/cpuinfo, else lscpu's model name."""
-    try:
-        with open("/proc/cpuinfo") as fh:
-            names = [ln.split(":", 1)[1].strip() for ln in fh if ln.startswith("model name")]
-        if names:
-            return f"{names[0]} x {len(names)}"
-    except OSError:
-        pass
-    try:
-        res = subprocess.run(["lscpu"], capture_output=True, text=True, timeout=30)
-        names = [ln.split(":", 1)[1].strip() for ln in res.stdout.splitlines() if ln.startswith("Model name:")]
-        if names:
-            return f"{names[0]} x {os.cpu_count()}"
-    except (OSError, subprocess.TimeoutExpired):
-        pass
-    return f"{platform.processor() or platform.machine() or 'model not known'} x {os.cpu_count()}"
