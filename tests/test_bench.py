@@ -290,3 +290,30 @@ def test_against_output_refused_before_the_worktree(temp_here, capsys, nothing_m
     assert main(["bench", "gradient", "--against", "HEAD", "--out", "/proc/t.md"]) == 2
     assert "--out /proc/t.md: folder /proc is not writable" in capsys.readouterr().err
     assert list(temp_here.iterdir()) == []
+
+
+@needs_git
+def test_against_table_takes_the_least_of_each_tree(temp_here, monkeypatch):
+    """Children faked (nothing timed): the figures are each tree's minimum over its measured runs (the warm-up's
+    are left out), memory is the least peak less that of the tiny size's measured run, and the ratios follow."""
+    calls = []
+
+    def child(case, path, steps, tiny=False, tree=None):
+        name = "new" if tree == against.ROOT else "old"
+        calls.append((name, tiny))
+        n = sum(c == (name, tiny) for c in calls)  # 1: the warm-up
+        fwd, bwd = {"old": (2.0, 3.0), "new": (1.0, 2.0)}[name]
+        slower = 10.0 if n == 1 else 1.0 + n / 10  # the warm-up is far slower, later runs a little
+        peak = (150.0 if tiny else {"old": 400.0, "new": 300.0}[name]) + (100.0 if n == 1 else n)
+        return {"forward_ms": fwd * slower, "backward_ms": bwd * slower, "peak_mib": peak, "backend": "cpu",
+                "mls_mpm": str(tree / "mls_mpm" / "__init__.py")}
+
+    monkeypatch.setattr(against, "run_child", child)
+    lines = []
+    case = {"c": dict(dtype="f64", n_grid=32, particles=1245, steps=200)}
+    bench_against("HEAD", repeats=3, quick=True, emit=lines.append, progress=lambda *_: None, cases=case)
+    assert calls == [("old", False), ("new", False)] * 4 + [("old", True), ("new", True)] * 2
+    # old: fwd 2 * 1.2, bwd 3 * 1.2, 402 - 152 MiB; new: fwd 1.2, bwd 2 * 1.2, 302 - 152 MiB
+    assert lines[-1] == ("| f64, 32^2 grid, 1245 particles, 40 steps | 2.400 | 1.200 | 2.00 | 3.600 | 2.400 | 1.50 | "
+                         "1.50 | 2.00 | 250 | 150 |")
+    assert list(temp_here.iterdir()) == []
