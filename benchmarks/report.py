@@ -93,16 +93,13 @@ def quality_section():
 
 
 def machine():
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as fh:
-            names = [ln.split(":", 1)[1].strip() for ln in fh if ln.startswith("model name")]
-        cpu = f"{names[0]} x {len(names)}" if names else cpu
-    except OSError:
-        pass
     import taichi
 
-    return f"{cpu}; Python {platform.python_version()}; Taichi {'.'.join(map(str, taichi.__version__))}; {platform.system()}"
+    from mls_mpm.bench.child import cpu_model
+
+    taichi_version = ".".join(map(str, taichi.__version__))
+    python = platform.python_version()
+    return f"{cpu_model()} x {os.cpu_count()}; Python {python}; Taichi {taichi_version}; {platform.system()}"
 
 
 def main(argv=None):

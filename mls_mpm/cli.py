@@ -160,6 +160,13 @@ def build_parser():
                        help="gradient: the Taichi backend measured")
     bench.add_argument("--dim", type=int, choices=[2, 3], default=None,
                        help="gradient: only the cases of this dimension (default: the 2D and the 3D cases)")
+    bench.add_argument("--against", metavar="REV", default=None,
+                       help="gradient: measure git revision REV (checked out in a temporary worktree, removed "
+                            "afterwards) and the working tree side by side, alternating their runs, and print "
+                            "both and the speed-ups (old / new); the manual path only, no Tape")
+    bench.add_argument("--repeats", type=integer(1), default=None, metavar="K",
+                       help="gradient --against: measured runs of each tree per case; the table shows the "
+                            "minimum (default: 3)")
     bench.add_argument("--max-seconds", type=float, default=None,
                        help="tradeoff: wall-time budget of one row; a row over it is stopped and marked (default: "
                             "no limit)")
@@ -313,6 +320,10 @@ def cmd_bench(args):
         raise BenchError(f"bench {args.what}: --arch applies to bench gradient only; drop it")
     if args.dim is not None and args.what != "gradient":
         raise BenchError(f"bench {args.what}: --dim applies to bench gradient only; drop it")
+    if args.against is not None and args.what != "gradient":
+        raise BenchError(f"bench {args.what}: --against applies to bench gradient only; drop it")
+    if args.repeats is not None and (args.what != "gradient" or args.against is None):
+        raise BenchError(f"bench {args.what}: --repeats applies to bench gradient --against REV only; drop it")
     if args.max_seconds is not None and (args.what != "tradeoff" or not 0 < args.max_seconds < math.inf):
         raise BenchError(f"bench {args.what}: --max-seconds {args.max_seconds:g}: expected seconds > 0, with bench "
                          "tradeoff only")
@@ -333,9 +344,14 @@ def cmd_bench(args):
                       overrides=args.set)
         return 0
     if args.what == "gradient":
-        from .bench import bench_gradient
+        from .bench import bench_against, bench_gradient
 
-        bench_gradient(quick=args.quick, arch=args.arch, out=args.out, dims=(2, 3) if args.dim is None else (args.dim,))
+        dims = (2, 3) if args.dim is None else (args.dim,)
+        if args.against is not None:
+            bench_against(args.against, repeats=args.repeats or 3, quick=args.quick, arch=args.arch, dims=dims,
+                          out=args.out)
+        else:
+            bench_gradient(quick=args.quick, arch=args.arch, out=args.out, dims=dims)
         return 0
     if args.what == "scaling":
         from .bench import bench_scaling

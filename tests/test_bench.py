@@ -5,12 +5,17 @@ where there is no GPU. The figures themselves are in BENCHMARKS.md.
 """
 import csv
 import importlib.util
+import os
+import signal
+import subprocess
+import tempfile
 from pathlib import Path
 
 import pytest
 
 from mls_mpm import runtime
-from mls_mpm.bench import bench_gradient, gradient
+from mls_mpm.bench import against, bench_against, bench_gradient, gradient
+from mls_mpm.bench.child import cpu_model
 from mls_mpm.bench.tradeoff import FIELDS, _retry, measure, pareto, rows_for
 from mls_mpm.cli import build_parser, main
 from mls_mpm.runtime import ArchError
@@ -92,6 +97,8 @@ def test_bench_options_parse():
     p = build_parser()
     a = p.parse_args(["bench", "gradient", "--arch", "vulkan", "--out", "g.md"])
     assert (a.what, a.arch, a.out, a.max_seconds) == ("gradient", "vulkan", "g.md", None)
+    a = p.parse_args(["bench", "gradient", "--against", "HEAD~3", "--repeats", "2", "--quick"])
+    assert (a.against, a.repeats, a.quick) == ("HEAD~3", 2, True)
     a = p.parse_args(["bench", "tradeoff", "s.toml", "--max-seconds", "60"])
     assert (a.what, a.scene, a.arch, a.max_seconds) == ("tradeoff", "s.toml", "cpu", 60.0)
 
@@ -105,6 +112,10 @@ def test_bench_options_parse():
     (["bench", "tradeoff", "s.toml", "--max-seconds", "inf"], "bench tradeoff: --max-seconds inf: expected seconds > 0"),
     (["bench", "gradient", "s.toml"], "bench gradient: SCENE s.toml: a scene applies to bench tradeoff only; drop it"),
     (["bench", "scaling", "s.toml", "--quick"], "bench scaling: SCENE s.toml: a scene applies to bench tradeoff only"),
+    (["bench", "scaling", "--against", "HEAD"], "bench scaling: --against applies to bench gradient only; drop it"),
+    (["bench", "gradient", "--repeats", "2"], "bench gradient: --repeats applies to bench gradient --against REV only"),
+    (["bench", "gradient", "--against", "HEAD", "--repeats", "0"],
+     "bench: argument --repeats: expected an integer >= 1"),
 ])
 def test_bench_options_that_do_not_apply_are_refused(argv, says, capsys):
     """One line, exit 2, before anything is measured (no scene is read: s.toml does not exist)."""
@@ -132,7 +143,7 @@ def nothing_measured(monkeypatch):
     import mls_mpm.bench.scaling as scaling
 
     for module, name in [(gradient, "backend_here"), (gradient, "run_child"), (child_module, "run_child"),
-                         (scaling, "run_child")]:
+                         (scaling, "run_child"), (against, "backend_here"), (against, "run_child")]:
         monkeypatch.setattr(module, name, child)
 
 
@@ -169,7 +180,8 @@ def test_bench_gradient_writes_out_after_the_check(tmp_path, monkeypatch):
     out = tmp_path / "g.md"
     bench_gradient(quick=True, out=out, emit=lambda *_: None, dims=(2,))
     table = out.read_text().splitlines()
-    assert table[0].startswith("Taichi CPU, 2 threads.") and len(table) == 6
+    cpu = f"CPU: {cpu_model()} ({os.cpu_count()} logical CPUs)"
+    assert table[0].startswith(f"Taichi CPU, 2 threads; {cpu}. Memory:") and len(table) == 6
     assert table[4].endswith("| 1.000 | 8.19 M | 1.200 | 1.20 | 4.400 | 2.00 | 60 | 160 | 0.38 |")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["g.md"]
     # both dimensions: the 3D rows have no Tape (2D only), then the 3D / 2D throughput and the window's time
@@ -180,3 +192,128 @@ def test_bench_gradient_writes_out_after_the_check(tmp_path, monkeypatch):
     assert any(line.startswith("3D forward particle-steps/s (f32, 32^3) / 2D (f32, 64^2), this run: 2.00") for line in table)
     assert any(line.startswith("One 10-step window of the 3D successor's settings (17157 particles, 32^3): forward + "
                                "manual backward 0.02 s") for line in table)
+
+
+def git(*args):
+    return subprocess.run(["git", "-C", str(ROOT), *args], capture_output=True, text=True)
+
+
+needs_git = pytest.mark.skipif(git("rev-parse", "--show-toplevel").returncode != 0, reason="not a git checkout")
+TINY_CASE = {"tiny": dict(dtype="f32", n_grid=16, particles=64, steps=2)}  # at the tiny size: its own memory base
+
+
+@pytest.fixture
+def temp_here(tmp_path, monkeypatch):
+    """tempfile's folder (where --against makes its worktree) is tmp_path, so that leftovers can be seen."""
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    return tmp_path
+
+
+@needs_git
+@pytest.mark.slow  # six children of about 3 s each
+def test_against_head_measures_both_trees_alternately(temp_here):
+    """Each child imports its own tree's mls_mpm; warm-ups, then old and new in turn; the table's ratios are those
+    of its figures; the temporary worktree is gone afterwards, from the disk and from git's list."""
+    lines, said = [], []
+    out = temp_here / "against.md"
+    (row,) = bench_against("HEAD", repeats=2, out=out, emit=lines.append, progress=said.append, cases=TINY_CASE)
+    old = Path(row["runs"]["old"][0]["mls_mpm"]).parents[1]
+    assert old.parent.parent == temp_here and old.parent.name.startswith("mls-mpm-against-")
+    assert [r["mls_mpm"] for r in row["runs"]["old"]] == [str(old / "mls_mpm" / "__init__.py")] * 2
+    assert [r["mls_mpm"] for r in row["runs"]["new"]] == [str(ROOT / "mls_mpm" / "__init__.py")] * 2
+    assert [text.split(": ")[-1] for text in said] == [
+        f"old ({old}), warm-up", f"new ({ROOT}), warm-up", f"old ({old}), repeat 1/2", f"new ({ROOT}), repeat 1/2",
+        f"old ({old}), repeat 2/2", f"new ({ROOT}), repeat 2/2"]
+    assert not old.exists() and sorted(temp_here.iterdir()) == [out]
+    assert str(old) not in git("worktree", "list", "--porcelain").stdout
+
+    head = git("rev-parse", "--short", "HEAD").stdout.strip()
+    cpu = f"CPU: {cpu_model()} ({os.cpu_count()} logical CPUs)"
+    assert lines[0].startswith(f"Taichi CPU, 2 threads; {cpu}; old: HEAD = {head}; new: the working tree at {head}")
+    assert lines[1].startswith("Each figure: the minimum over 2 runs of each, alternating old and new")
+    assert [c.strip() for c in lines[3].strip("|").split("|")] == [
+        "case", "old fwd ms/step", "new fwd ms/step", "fwd speed-up", "old bwd ms/step", "new bwd ms/step",
+        "bwd speed-up", "old bwd / fwd", "new bwd / fwd", "old MiB", "new MiB"]
+    cells = [c.strip() for c in lines[5].strip("|").split("|")]
+    assert len(lines) == 6 and cells[0] == "f32, 16^2 grid, 64 particles, 2 steps"
+    fwd_old, fwd_new, fwd_up, bwd_old, bwd_new, bwd_up, ratio_old, ratio_new = map(float, cells[1:9])
+    assert fwd_old == pytest.approx(min(r["forward_ms"] for r in row["runs"]["old"]), abs=5e-4)
+    assert bwd_new == pytest.approx(min(r["backward_ms"] for r in row["runs"]["new"]), abs=5e-4)
+    assert fwd_up == pytest.approx(fwd_old / fwd_new, rel=0.01, abs=0.01)
+    assert bwd_up == pytest.approx(bwd_old / bwd_new, rel=0.01, abs=0.01)
+    assert (ratio_old, ratio_new) == pytest.approx((bwd_old / fwd_old, bwd_new / fwd_new), rel=0.01, abs=0.01)
+    assert cells[9:] == ["0", "0"]  # the tiny case is its own baseline
+    assert out.read_text().splitlines() == lines
+
+
+@needs_git
+@pytest.mark.parametrize("stop", ["ctrl-c", "sigterm"])
+def test_against_removes_its_worktree_when_stopped(stop, temp_here, monkeypatch):
+    trees = []
+
+    def stopped(case, path, steps, tiny=False, tree=None):
+        trees.append(tree)
+        assert (tree / "mls_mpm" / "bench" / "child.py").is_file()
+        if stop == "sigterm":
+            os.kill(os.getpid(), signal.SIGTERM)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(against, "run_child", stopped)
+    previous = signal.getsignal(signal.SIGTERM)
+    with pytest.raises(SystemExit if stop == "sigterm" else KeyboardInterrupt) as e:
+        bench_against("HEAD", cases=TINY_CASE, emit=lambda *_: None, progress=lambda *_: None)
+    assert stop == "ctrl-c" or e.value.code == 143
+    assert len(trees) == 1 and not trees[0].exists() and list(temp_here.iterdir()) == []
+    assert str(trees[0]) not in git("worktree", "list", "--porcelain").stdout
+    assert signal.getsignal(signal.SIGTERM) == previous
+
+
+@needs_git
+@pytest.mark.parametrize("rev, says", [
+    ("no-such-rev", "no-such-rev: not a revision of the repository at {ROOT}; expected a commit, branch or tag"),
+    ("-x", "-x: not a revision of the repository"),
+    ("root", "{root}: revision {root10} has no mls_mpm/bench/child.py measure(case, path, steps) to run"),
+])
+def test_against_a_bad_revision_is_refused_before_measuring(rev, says, temp_here, capsys, nothing_measured):
+    root = git("rev-list", "--max-parents=0", "HEAD").stdout.split()[0]
+    rev = root if rev == "root" else rev
+    worktrees = git("worktree", "list").stdout
+    assert main(["bench", "gradient", f"--against={rev}"]) == 2
+    err = capsys.readouterr().err
+    says = says.format(ROOT=ROOT, root=root, root10=root[:10])
+    assert err.startswith(f"mls-mpm: error: bench gradient --against {says}") and len(err.splitlines()) == 1, err
+    assert list(temp_here.iterdir()) == [] and git("worktree", "list").stdout == worktrees
+
+
+@needs_git
+def test_against_output_refused_before_the_worktree(temp_here, capsys, nothing_measured):
+    assert main(["bench", "gradient", "--against", "HEAD", "--out", "/proc/t.md"]) == 2
+    assert "--out /proc/t.md: folder /proc is not writable" in capsys.readouterr().err
+    assert list(temp_here.iterdir()) == []
+
+
+@needs_git
+def test_against_table_takes_the_least_of_each_tree(temp_here, monkeypatch):
+    """Children faked (nothing timed): the figures are each tree's minimum over its measured runs (the warm-up's
+    are left out), memory is the least peak less that of the tiny size's measured run, and the ratios follow."""
+    calls = []
+
+    def child(case, path, steps, tiny=False, tree=None):
+        name = "new" if tree == against.ROOT else "old"
+        calls.append((name, tiny))
+        n = sum(c == (name, tiny) for c in calls)  # 1: the warm-up
+        fwd, bwd = {"old": (2.0, 3.0), "new": (1.0, 2.0)}[name]
+        slower = 10.0 if n == 1 else 1.0 + n / 10  # the warm-up is far slower, later runs a little
+        peak = (150.0 if tiny else {"old": 400.0, "new": 300.0}[name]) + (100.0 if n == 1 else n)
+        return {"forward_ms": fwd * slower, "backward_ms": bwd * slower, "peak_mib": peak, "backend": "cpu",
+                "mls_mpm": str(tree / "mls_mpm" / "__init__.py")}
+
+    monkeypatch.setattr(against, "run_child", child)
+    lines = []
+    case = {"c": dict(dtype="f64", n_grid=32, particles=1245, steps=200)}
+    bench_against("HEAD", repeats=3, quick=True, emit=lines.append, progress=lambda *_: None, cases=case)
+    assert calls == [("old", False), ("new", False)] * 4 + [("old", True), ("new", True)] * 2
+    # old: fwd 2 * 1.2, bwd 3 * 1.2, 402 - 152 MiB; new: fwd 1.2, bwd 2 * 1.2, 302 - 152 MiB
+    assert lines[-1] == ("| f64, 32^2 grid, 1245 particles, 40 steps | 2.400 | 1.200 | 2.00 | 3.600 | 2.400 | 1.50 | "
+                         "1.50 | 2.00 | 250 | 150 |")
+    assert list(temp_here.iterdir()) == []

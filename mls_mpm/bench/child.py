@@ -1,16 +1,19 @@
 """One measurement in a child process of its own (peak memory is per process): the benchmark cases, the
-scene each runs, and the probe of a backend.
+scene each runs, and the probes of the backend and the CPU model.
 
 `run_child(case, path, steps)` starts `measure` in a fresh interpreter and reads back its JSON line: the
 forward and manual backward ms/step ("manual") or ti.ad.Tape's forward+backward ms/step ("tape"), the
-process's peak RSS and the backend it ran on. Compile time is excluded by a warm-up pass.
+process's peak RSS and the backend it ran on (and the mls_mpm it imported: `tree` picks the source tree whose
+code it runs). Compile time is excluded by a warm-up pass.
 """
 import json
 import os
+import platform
 import resource
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -26,6 +29,7 @@ CASES = {
     "3d window": dict(dim=3, dtype="f32", n_grid=32, particles=17157, steps=30, window=True),
 }
 THREADS = 2
+TINY_PARTICLES, TINY_STEPS = 64, 2  # run_child(tiny=True): the process without the fields' memory
 WINDOW_CELLS = 8  # radius of the ball of the "3d window" case, in cells
 
 
@@ -105,20 +109,42 @@ def measure(case, path, steps):
     print(json.dumps(out))
 
 
-def run_child(case_name, path, steps, tiny=False):
-    """`measure` of CASES[case_name] (or of a case dict) in a fresh interpreter; its result dict.
+def run_child(case_name, path, steps, tiny=False, tree=None):
+    """`measure` of CASES[case_name] (or of a case dict) in a fresh interpreter; its result dict, with "mls_mpm":
+    the file of the package the child imported.
 
-    tiny=True: the same kernels at a negligible size, what the process holds besides the fields."""
+    tiny=True: the same kernels at a negligible size, what the process holds besides the fields.
+    tree: a source tree (the folder holding mls_mpm/ and adjoint/) whose code the child imports and whose own
+    `measure` it calls, first on PYTHONPATH and its working folder (default: whatever this interpreter finds)."""
     case = dict(CASES[case_name]) if isinstance(case_name, str) else dict(case_name)
     if tiny:
-        case.update(particles=64)
-        steps = 2
-    cmd = [sys.executable, "-c", f"from mls_mpm.bench.child import measure; measure({case!r}, {path!r}, {steps})"]
-    res = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "TI_LOG_LEVEL": "error"})
+        case.update(particles=TINY_PARTICLES)
+        steps = TINY_STEPS
+    code = ("import json, mls_mpm; print(json.dumps({'mls_mpm': mls_mpm.__file__}), flush=True); "
+            f"from mls_mpm.bench.child import measure; measure({case!r}, {path!r}, {steps})")
+    env = {**os.environ, "TI_LOG_LEVEL": "error"}
+    if tree is not None:
+        env["PYTHONPATH"] = os.pathsep.join(p for p in (str(tree), env.get("PYTHONPATH")) if p)
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=tree)
     lines = [ln for ln in res.stdout.splitlines() if ln.startswith("{")]
-    if res.returncode or not lines:
-        raise RuntimeError(f"benchmark child failed ({case_name}, {path}):\n{res.stderr[-2000:]}")
-    return json.loads(lines[-1])
+    if res.returncode or len(lines) < 2:
+        where = f" in {tree}" if tree is not None else ""
+        raise RuntimeError(f"benchmark child failed ({case_name}, {path}{where}):\n{res.stderr[-2000:]}")
+    return {k: v for ln in lines for k, v in json.loads(ln).items()}
+
+
+def case_steps(case, quick):
+    """The steps a case runs: its own, or with quick 40 (3D: 10) at the most."""
+    return min(case["steps"], 40 if case.get("dim", 2) == 2 else 10) if quick else case["steps"]
+
+
+def case_label(case, steps):
+    """A case as a table's first column: dtype, grid, particles, steps."""
+    dim = case.get("dim", 2)
+    label = f"{case['dtype']}, {case['n_grid']}^{dim} grid, {case['particles']} particles, {steps} steps"
+    if case.get("window"):
+        label += " (one window of the 3D successor's settings)"
+    return label
 
 
 def backend_here(arch):
@@ -132,3 +158,21 @@ def backend_here(arch):
     if res.returncode:
         raise ArchError((res.stderr.strip().splitlines() or ["?"])[-1].split(": ", 1)[-1])
     return res.stdout.split()[-1]
+
+
+def cpu_model():
+    """The CPU's model name: "model name" in /proc/cpuinfo, else lscpu's "Model name", else what the platform says."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    try:
+        res = subprocess.run(["lscpu"], capture_output=True, text=True, timeout=30)
+        for line in res.stdout.splitlines():
+            if line.startswith("Model name:"):
+                return line.split(":", 1)[1].strip()
+    except (OSError, subprocess.TimeoutExpired):
+        pass
+    return platform.processor() or platform.machine() or "unknown CPU"

@@ -4,10 +4,15 @@ Each measurement runs in its own process (child.py), and every ratio is taken be
 the same invocation. Compile time is excluded by a warm-up pass, and the compiler's memory by running each
 child twice (the first fills Taichi's offline cache).
 """
+import os
 import subprocess
 
-from .child import CASES, THREADS, backend_here, run_child
+from .child import (CASES, THREADS, TINY_PARTICLES, TINY_STEPS, backend_here, case_label, case_steps, cpu_model,
+                    run_child)
 from .output import writable_file
+
+MEMORY_CPU = (f"peak RSS of the path's process minus that of the same path at {TINY_PARTICLES} particles and "
+              f"{TINY_STEPS} steps (Python, Taichi and the compiled kernels), i.e. the memory the data needs")
 
 
 def bench_gradient(quick=False, emit=print, arch="cpu", out=None, dims=(2, 3)):
@@ -36,7 +41,7 @@ def bench_gradient(quick=False, emit=print, arch="cpu", out=None, dims=(2, 3)):
         if case.get("dim", 2) not in dims:
             continue
         case = dict(case, arch=arch)
-        steps = min(case["steps"], 40 if case.get("dim", 2) == 2 else 10) if quick else case["steps"]
+        steps = case_steps(case, quick)
         man = warm(case, "manual", steps)
         # the Tape differentiates the 2D kernels only (Simulator.gradient_tape refuses 3D and says why)
         tape = warm(case, "tape", steps) if case.get("dim", 2) == 2 else None
@@ -45,12 +50,10 @@ def bench_gradient(quick=False, emit=print, arch="cpu", out=None, dims=(2, 3)):
             if tape:
                 tape["peak_mib"] -= warm(case, "tape", steps, tiny=True)["peak_mib"]
         rows.append((name, case, steps, man, tape))
-    where = f"Taichi CPU, {THREADS} threads" if backend == "cpu" else f"Taichi {backend} ({_device_name(backend)})"
-    memory = ("peak RSS of the path's process minus that of the same path at 64 particles and 2 steps (Python, "
-              "Taichi and the compiled kernels), i.e. the memory the data needs" if backend == "cpu" else
+    memory = (MEMORY_CPU if backend == "cpu" else
               "not measured (the fields live in device memory; the estimate of the preallocated fields is in "
               "the scaling table)")
-    say(f"{where}. Memory: {memory}.\n")
+    say(f"{measured_on(backend)}. Memory: {memory}.\n")
     say("| case | fwd ms/step | particle-steps/s | manual bwd ms/step | bwd / fwd | Tape fwd+bwd ms/step | "
         "Tape / manual (fwd+bwd) | manual MiB | Tape MiB | manual / Tape memory |")
     say("|---|---|---|---|---|---|---|---|---|---|")
@@ -67,12 +70,8 @@ def bench_gradient(quick=False, emit=print, arch="cpu", out=None, dims=(2, 3)):
         else:
             mem = f"{m_man:.0f} | - | -" if backend == "cpu" else "- | - | -"
             taped = "- (2D only) | -"
-        dim = case.get("dim", 2)
-        label = f"{case['dtype']}, {case['n_grid']}^{dim} grid, {case['particles']} particles, {steps} steps"
-        if case.get("window"):
-            label += " (one window of the 3D successor's settings)"
-        say(f"| {label} | {fwd:.3f} | {case['particles'] / fwd * 1e3 / 1e6:.2f} M | {bwd:.3f} | {bwd / fwd:.2f} | "
-            f"{taped} | {mem} |")
+        say(f"| {case_label(case, steps)} | {fwd:.3f} | {case['particles'] / fwd * 1e3 / 1e6:.2f} M | {bwd:.3f} | "
+            f"{bwd / fwd:.2f} | {taped} | {mem} |")
     speed = {name: case["particles"] / man["forward_ms"] for name, case, _, man, _ in rows}  # particle-steps/ms
     if "large" in speed and "3d" in speed:
         say(f"\n3D forward particle-steps/s (f32, 32^3) / 2D (f32, 64^2), this run: {speed['3d'] / speed['large']:.2f} "
@@ -87,6 +86,13 @@ def bench_gradient(quick=False, emit=print, arch="cpu", out=None, dims=(2, 3)):
 
         atomic_write(out, lambda fh: fh.write(("\n".join(lines) + "\n").encode()))
     return rows
+
+
+def measured_on(backend):
+    """What the children ran on, said beside every figure: "Taichi CPU, 2 threads; CPU: model (n logical CPUs)",
+    on a GPU "Taichi cuda (the GPU's name); CPU: ..."."""
+    taichi = f"Taichi CPU, {THREADS} threads" if backend == "cpu" else f"Taichi {backend} ({_device_name(backend)})"
+    return f"{taichi}; CPU: {cpu_model()} ({os.cpu_count()} logical CPUs)"
 
 
 def _device_name(backend):

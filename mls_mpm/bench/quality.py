@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..checkpoint import atomic_write
+from .child import cpu_model
 from .output import BenchError, writable_folder
 
 PAIRS_DIR = Path(__file__).resolve().parents[2] / "scenes" / "images" / "pairs"
@@ -169,19 +170,6 @@ def suite_figures(rows):
             w = worst(have, key=lambda r: r[key])
             out[key] = (w[key], statistics.median(r[key] for r in have), w["pair"])
     return out
-
-
-def cpu_model():
-    """The "model name" of /proc/cpuinfo, else what the platform says."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    import platform
-
-    return platform.processor() or platform.machine() or "unknown CPU"
 
 
 def command_line(quality, quick, workers, out, names, overrides):
