@@ -19,7 +19,9 @@ reproduces the run and a user can edit it:
   the transport of each colour channel's colour-mass on the coarse grid and eq 13 on the fine one, both from
   the first iteration (a coarse stage of colour transport alone left color_swap's colours scrambled: iou 0.36
   against 0.87 without it);
-- L-BFGS, the quality's iteration count and time budget (optimize.max_seconds).
+- L-BFGS, the quality's iteration count and time budget (optimize.max_seconds); at default and best quality two
+  rounds (optimize.rounds): the second starts at rest from where the first ended and optimizes again, which
+  finishes what one long optimization stalls on (a square into a thin L: iou 0.61 in one round, 0.95 in two).
 
 In 3D (sim.dim = 3: INITIAL or TARGET a mesh, "shape:..." or "extrude:IMAGE", shapes.py; or dim=3) the same
 choices are made on the 3D quality's grid (QUALITIES_3D: 32^3 at default) with 1 particle per cell volume, no
@@ -57,14 +59,17 @@ COLOR_LEVELS = 4  # levels per channel when colours are counted
 class Quality:
     n_grid: int  # simulation grid; the fine loss grid is the same, the coarse one half of it
     iterations: int  # L-BFGS iterations over all stages
-    max_seconds: float  # the default time budget (0: none)
+    max_seconds: float  # the default time budget (0: none), shared by the rounds
     particles_per_cell: int = 4
+    rounds: int = 1  # optimize.rounds: each round starts at rest from where the one before ended (thesis 7.4)
 
 
 QUALITIES = {
     "fast": Quality(n_grid=32, iterations=120, max_seconds=25.0),
-    "default": Quality(n_grid=64, iterations=400, max_seconds=110.0),  # 120 stopped most suite pairs at 15-55 s
-    "best": Quality(n_grid=64, iterations=800, max_seconds=0.0),
+    # a second round, starting at rest from where the first ended, finishes what one long optimization stalls on
+    # (thin strokes tearing, colours that flow past each other): bench quality, BENCHMARKS.md "Morph quality"
+    "default": Quality(n_grid=64, iterations=400, max_seconds=105.0, rounds=2),
+    "best": Quality(n_grid=64, iterations=800, max_seconds=0.0, rounds=2),
 }
 QUALITIES_3D = {  # 3D: n_grid^3 nodes and a 4^3 stencil cost more a step, so a coarser grid and 1 particle per cell
     "fast": Quality(n_grid=24, iterations=30, max_seconds=120.0, particles_per_cell=1),
@@ -88,12 +93,14 @@ class Choice:
     steps: int
     loss: str
     shift: tuple = (0.0, 0.0)  # the target's move onto the body's centre of mass
+    rounds: int = 1
 
     def line(self, q: str) -> str:
         moved = (f"target moved by ({', '.join(f'{v:+.3f}' for v in self.shift)}) onto the body's centre of mass "
                  "(--keep-position: not); " if any(self.shift) else "")
         return (f"morph ({q}): {moved}{self.loss} loss; travel {self.distance:.3f} (90% of the transport plan) at "
-                f"up to {self.speed:.3g}/s (CFL-safe {SPEED} cell/step) -> {self.steps} steps")
+                f"up to {self.speed:.3g}/s (CFL-safe {SPEED} cell/step) -> {self.steps} steps"
+                + (f" a round, {self.rounds} rounds" if self.rounds > 1 else ""))
 
 
 def _image(path, what):
@@ -226,7 +233,8 @@ def choose(initial, target, quality="default", loss="auto", seconds=None, sets=(
                 "nu": 0.3, "density": density, "gamma": 0.5, "gravity": [0.0] * dim, "particles_per_cell": ppc},
         "control": {"stride": STRIDE},
         "optimize": {"method": "lbfgs", "iterations": q.iterations,
-                     "max_seconds": q.max_seconds if seconds is None else float(seconds)},
+                     "max_seconds": q.max_seconds if seconds is None else float(seconds),
+                     **({"rounds": q.rounds} if q.rounds > 1 else {})},
     }
     if use_color:
         color_value = 0.5 * float(np.sum((splat_grid(x0, m_p, fine, c0) - splat_grid(xt, m_t, fine, ct)) ** 2))
@@ -249,7 +257,9 @@ def choose(initial, target, quality="default", loss="auto", seconds=None, sets=(
     for (section, key), value in given.items():
         sections.setdefault(section, {})[key] = value
     text = _toml(sections, quality, kind)
-    return Choice(text, sections["scene"]["name"], distance, speed, steps, kind, tuple(shift))
+    rounds = sections["optimize"].get("rounds", 1)  # a bad --set value: load_scene says so
+    return Choice(text, sections["scene"]["name"], distance, speed, steps, kind, tuple(shift),
+                  rounds if isinstance(rounds, int) and not isinstance(rounds, bool) else 1)
 
 
 def _weight(value) -> float:

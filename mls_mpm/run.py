@@ -93,16 +93,20 @@ def run_scene(scene, out_dir, resume=False, emit=print, should_stop=None, render
         return _run(scene, prob, sim, out, resume, emit, should_stop, render, t0)
 
 
-def stages(scene):
-    """The stages of optimize.schedule, or one stage of every loss grid."""
+def stages(scene, round_index=0):
+    """The stages of optimize.schedule, or one stage of every loss grid; rounds after the first run the last
+    stage alone (they start where the round before ended, near the target: the coarse stages, which pull far
+    material, would only spend their share of the time)."""
     plan = scene.optimize.schedule or ({"grids": scene.loss.grids, "share": 1.0},)
+    plan = plan if round_index == 0 else plan[-1:]
     return [Stage(tuple(s["grids"]), s["share"]) for s in plan]
 
 
-def _state_kinds(scene):
-    """What the checkpoint of this scene's optimizer holds (mls_mpm.optimize.STATE), with the stage's part."""
+def _state_kinds(scene, round_index):
+    """What the checkpoint of this scene's optimizer in round round_index holds (mls_mpm.optimize.STATE), with
+    the stage's part."""
     kinds = dict(STATE[scene.optimize.method])
-    return {**kinds, **STAGE_STATE} if len(stages(scene)) > 1 else kinds
+    return {**kinds, **STAGE_STATE} if len(stages(scene, round_index)) > 1 else kinds
 
 
 def _run(scene, prob, sim, out, resume, emit, should_stop, render, t0):
@@ -123,9 +127,11 @@ def _run(scene, prob, sim, out, resume, emit, should_stop, render, t0):
     while len(done) < opt.rounds:
         r = len(done)
         now = time.perf_counter()
-        # the budget left is split evenly over the rounds left; what a round leaves unused goes to the later ones
-        seconds = max((deadline - now) / (opt.rounds - r), 1e-9) if math.isfinite(deadline) else 0.0
-        method = staged(METHODS[opt.method], stages(scene), seconds, now)
+        # the budget left is split over the rounds left in the proportions R - r : ... : 2 : 1 (round r of R, from
+        # 0), this one taking 2 / (R - r + 1) of it: the first round, which has the farthest to go, gets the most,
+        # and what a round leaves unused goes to the later ones
+        seconds = max((deadline - now) * 2 / (opt.rounds - r + 1), 1e-9) if math.isfinite(deadline) else 0.0
+        method = staged(METHODS[opt.method], stages(scene, r), seconds, now)
         sim.set_initial(**starts[r])
 
         def on_checkpoint(state):
@@ -308,7 +314,7 @@ def _load_checkpoint(path, scene, prob):
         opt_state = {"loss": check_value(path, "opt.loss", st.get("loss"), "float", what),
                      "controls": check_array(path, arrays, "opt_controls", "f", controls, what)}
         shapes = {"like_controls": controls, "particles": (N, d), "pairs": (None, K * N * d * d)}
-        for key, kind in _state_kinds(scene).items():
+        for key, kind in _state_kinds(scene, len(done)).items():
             if kind in shapes:
                 opt_state[key] = check_array(path, arrays, f"opt_{key}", "f", shapes[kind], what)
             elif kind == "per_control":
@@ -316,7 +322,7 @@ def _load_checkpoint(path, scene, prob):
             else:
                 opt_state[key] = check_value(path, f"opt.{key}", st.get(key), kind, what)
         _require_losses(path, "opt.losses", opt_state["losses"])
-        pairs = [opt_state[k] for k, kind in _state_kinds(scene).items() if kind == "pairs"]
+        pairs = [opt_state[k] for k, kind in _state_kinds(scene, len(done)).items() if kind == "pairs"]
         if pairs and (len({len(p) for p in pairs}) != 1 or len(pairs[0]) > PAIRS_MAX):
             raise CheckpointError(f"{path}: opt_S and opt_Y hold {len(pairs[0])} and {len(pairs[-1])} pairs: "
                                   f"expected as many of each, at most {PAIRS_MAX}; delete it or re-run")

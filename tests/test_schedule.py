@@ -358,9 +358,31 @@ def test_a_run_past_its_budget_writes_its_result(tmp_path):
     assert summary["loss_final"] == L_final
 
 
+def test_later_rounds_run_the_last_stage_alone(tmp_path):
+    """With rounds = 2, round 1 runs the schedule's stages and round 2 the last stage alone, with every
+    iteration; interrupted in round 2 and resumed, the run ends bit for bit where the uninterrupted one does."""
+    scene = scene_of("optimize.rounds=2")
+    lines = []
+    fresh_taichi()
+    summary = run_scene(scene, tmp_path / "whole", emit=lines.append, render=False)
+    second = lines.index("round 2/2")
+    assert [ln for ln in lines[:second] if ln.startswith("stage ")][0].startswith("stage 1/2: loss grids [16]")
+    assert not any(ln.startswith("stage ") for ln in lines[second:])
+    _, arrays = load_npz(tmp_path / "whole" / "result.npz", "result")
+    assert arrays["round_lengths"].tolist() == [(1 + 2) + (1 + 1), 1 + 3]  # round 2: one stage of 3 iterations
+    stopped = run(scene, tmp_path / "cut", should_stop=StopAt(4))  # round 1 has 3 iterations: stop in round 2
+    assert stopped["interrupted"]
+    meta, _ = load_npz(tmp_path / "cut" / "checkpoint.npz", "checkpoint")
+    assert len(meta["rounds"]) == 1 and "stage" not in meta["opt"]
+    resumed = run(scene, tmp_path / "cut", resume=True)
+    _, again = load_npz(tmp_path / "cut" / "result.npz", "result")
+    assert np.array_equal(again["controls"], arrays["controls"])
+    assert again["losses"].tolist() == arrays["losses"].tolist() and resumed["iou"] == summary["iou"]
+
+
 def test_rounds_share_the_budget(tmp_path):
-    """optimize.max_seconds with rounds = 2: each round gets half of what is left when it starts (it used to
-    be the first round's alone, which spent it and left none for the second); a round stopped by its share
+    """optimize.max_seconds with rounds = 2: the first round gets 2/3 of the budget, the second what is left
+    (the first used to be able to spend it all and leave none for the second); a round stopped by its share
     of the budget is followed by the next round."""
     lines = []
     scene = scene_of("optimize.max_seconds=6", "optimize.iterations=100000", "optimize.rounds=2")
