@@ -314,7 +314,8 @@ def _load_checkpoint(path, scene, prob):
         opt_state = {"loss": check_value(path, "opt.loss", st.get("loss"), "float", what),
                      "controls": check_array(path, arrays, "opt_controls", "f", controls, what)}
         shapes = {"like_controls": controls, "particles": (N, d), "pairs": (None, K * N * d * d)}
-        for key, kind in _state_kinds(scene, len(done)).items():
+        kinds = _state_kinds(scene, len(done))
+        for key, kind in kinds.items():
             if kind in shapes:
                 opt_state[key] = check_array(path, arrays, f"opt_{key}", "f", shapes[kind], what)
             elif kind == "per_control":
@@ -322,7 +323,7 @@ def _load_checkpoint(path, scene, prob):
             else:
                 opt_state[key] = check_value(path, f"opt.{key}", st.get(key), kind, what)
         _require_losses(path, "opt.losses", opt_state["losses"])
-        pairs = [opt_state[k] for k, kind in _state_kinds(scene, len(done)).items() if kind == "pairs"]
+        pairs = [opt_state[k] for k, kind in kinds.items() if kind == "pairs"]
         if pairs and (len({len(p) for p in pairs}) != 1 or len(pairs[0]) > PAIRS_MAX):
             raise CheckpointError(f"{path}: opt_S and opt_Y hold {len(pairs[0])} and {len(pairs[-1])} pairs: "
                                   f"expected as many of each, at most {PAIRS_MAX}; delete it or re-run")
