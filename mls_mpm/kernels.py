@@ -1,5 +1,6 @@
 """Cubic B-spline weights and the 4^dim stencil (eq 1-2: N(x) = prod_d N1(x_d / dx)), for dim = 2 and 3."""
 import taichi as ti
+from taichi.lang import impl
 
 from .config import STENCIL
 
@@ -62,10 +63,38 @@ def weights(fx):
     return w, dw
 
 
+def scalarized() -> bool:
+    """Whether the running Taichi scalarizes matrices (the 3D Tape oracle's setting, runtime.needs_scalarized)."""
+    return bool(impl.current_cfg().force_scalarize_matrix)
+
+
+@ti.func
+def axis0(w, i0):
+    """w[i0, 0], the axis-0 weight of stencil row i0. Where Taichi scalarizes matrices (the 3D Tape oracle) and i0
+    is the runtime loop's, by ti.select: its autodiff cannot take a matrix index that varies at run time. Else by
+    index: the selects make the 3D production kernels compile about 3x slower."""
+    v = w[0, 0]
+    if ti.static(isinstance(i0, int) or not scalarized()):
+        v = w[i0, 0]
+    else:
+        for j in ti.static(range(1, STENCIL)):
+            v = ti.select(i0 == j, w[j, 0], v)
+    return v
+
+
+@ti.func
+def carry(v):
+    """v itself, for a value computed before the stencil's runtime loop (3D) and read inside it: reassign it at the
+    top of each iteration, `w = carry(w)`. Taichi 1.7.4's autodiff keeps the adjoint of such a value for one
+    iteration only (the Tape oracle would then see one slab of the stencil); a local reassigned in the loop goes on
+    its adstack instead and gets every iteration's adjoint. x * 1.0 is exact, and LLVM folds it away."""
+    return v * 1.0
+
+
 @ti.func
 def node_N(w, i0, o2):
     """N(x_i - x_p) = prod_d N1 for node base + (i0, o2) (eq 1)."""
-    N = w[i0, 0]
+    N = axis0(w, i0)
     for d in ti.static(range(o2.n)):
         N *= w[o2[d], d + 1]
     return N
@@ -77,7 +106,7 @@ def node_weight(w, dw, i0, o2, inv_dx):
     dim = ti.static(o2.n + 1)
     dN = ti.Vector.zero(float, dim)
     for e in ti.static(range(dim)):
-        g = dw[i0, 0] if ti.static(e == 0) else w[i0, 0]
+        g = axis0(dw, i0) if ti.static(e == 0) else axis0(w, i0)
         for d in ti.static(range(1, dim)):
             g *= dw[o2[d - 1], d] if ti.static(d == e) else w[o2[d - 1], d]
         dN[e] = g
@@ -121,4 +150,5 @@ def splat_particle(grid: ti.template(), X, inv_dx, value):
             splat_slab(grid, base, w, value, i0)
     else:
         for i0 in range(STENCIL):
-            splat_slab(grid, base, w, value, i0)
+            w = carry(w)
+            splat_slab(grid, base, w, carry(value), i0)

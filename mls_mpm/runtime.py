@@ -74,9 +74,11 @@ class Settings:
     arch: str
     dtype: str
     threads: int
+    scalarized: bool = False  # ti.init(force_scalarize_matrix=True): what the 3D Tape oracle needs (ensure)
 
     def __str__(self):
-        return f"{self.dtype} on {self.arch} with {self.threads} thread{'s' if self.threads != 1 else ''}"
+        return (f"{self.dtype} on {self.arch} with {self.threads} thread{'s' if self.threads != 1 else ''}"
+                + (", matrices scalarized" if self.scalarized else ""))
 
 
 class TaichiRuntime:
@@ -98,7 +100,7 @@ class TaichiRuntime:
         if impl.get_runtime().prog is not self._prog:  # initialised outside ensure: read it, a new generation
             c = impl.current_cfg()
             self._started(Settings(running_arch(), "f64" if c.default_fp == ti.f64 else "f32",
-                                   int(c.cpu_max_num_threads)))
+                                   int(c.cpu_max_num_threads), bool(c.force_scalarize_matrix)))
         return self.settings
 
     def _started(self, settings):
@@ -106,15 +108,18 @@ class TaichiRuntime:
         self.settings = settings
         self._prog = impl.get_runtime().prog
 
-    def _fits(self, cfg) -> bool:
+    def _fits(self, cfg, tape) -> bool:
         cur = self.current()
         return (cur is not None and cur.dtype == cfg.dtype and cur.arch in BACKENDS[cfg.arch]
-                and (cur.arch != "cpu" or cur.threads == cfg.cpu_threads) and not impl.current_cfg().fast_math)
+                and (cur.arch != "cpu" or cur.threads == cfg.cpu_threads) and not impl.current_cfg().fast_math
+                and (tape is None or (cur.scalarized or not needs_scalarized(cfg, tape) if tape
+                                      else not cur.scalarized)))
 
-    def ensure(self, cfg) -> int:
-        """Initialise Taichi for cfg's arch, dtype and CPU threads, re-initialising when any differs; return
-        the generation. Raises ArchError when no backend that cfg.arch allows can start here."""
-        if self._fits(cfg):
+    def ensure(self, cfg, tape=None) -> int:
+        """Initialise Taichi for cfg's arch, dtype and CPU threads, and for `tape` (see the module function
+        ensure), re-initialising when any differs; return the generation. Raises ArchError when no backend that
+        cfg.arch allows can start here."""
+        if self._fits(cfg, tape):
             return self.generation
         if impl.get_runtime().prog is not None:
             ti.reset()
@@ -122,15 +127,16 @@ class TaichiRuntime:
         threads = cfg.cpu_threads
         # unrolling_limit=0: the 3D stencil's 4^3 = 64 nodes are unrolled on purpose (ti.static), which Taichi
         # would otherwise warn of at every compile
+        scalarized = needs_scalarized(cfg, bool(tape))
         kwargs = dict(default_fp=real(cfg.dtype), fast_math=False, offline_cache=True, cpu_max_num_threads=threads,
-                      unrolling_limit=0)
+                      unrolling_limit=0, force_scalarize_matrix=scalarized)
         for backend in allowed:
             if not _driver_present(backend):
                 continue
             ti.init(arch=getattr(ti, backend), log_level=ti.ERROR, **kwargs)  # ERROR: no fallback warning
             ti.set_logging_level(ti.WARN)
             if running_arch() == backend:
-                self._started(Settings(backend, cfg.dtype, threads))
+                self._started(Settings(backend, cfg.dtype, threads, scalarized))
                 return self.generation
             ti.reset()  # Taichi fell back to the CPU
         self.settings = None
@@ -149,9 +155,20 @@ class TaichiRuntime:
 RUNTIME = TaichiRuntime()
 
 
-def ensure(cfg) -> int:
+def needs_scalarized(cfg, tape) -> bool:
+    """Whether Taichi must scalarize matrices (ti.init(force_scalarize_matrix=True)) for cfg: for the Tape oracle in
+    3D, where the stencil's first axis is a runtime loop whose reverse Taichi 1.7.4 builds on its autodiff stack
+    (adstack), which it supports for scalar locals only. The manual kernels compile about 3x slower scalarized,
+    so production runs never are."""
+    return bool(tape) and cfg.dim == 3
+
+
+def ensure(cfg, tape=None) -> int:
     """Initialise Taichi for cfg (RUNTIME.ensure); return the runtime's generation.
 
-    Re-initialising frees every field: simulators made under other settings refuse to run afterwards.
+    tape=True: fit for ti.ad.Tape on cfg's kernels (in 3D, matrices scalarized: needs_scalarized; in 2D either);
+    False: not scalarized (the production setting); None (Simulator, the CLI): either, so a Simulator can be built where
+    the Tape oracle runs. Re-initialising frees every field: simulators made under other settings refuse to run
+    afterwards.
     """
-    return RUNTIME.ensure(cfg)
+    return RUNTIME.ensure(cfg, tape)

@@ -16,7 +16,7 @@ from .losses import ColorLoss, PositionLoss
 from .memory import check_memory, loss_grid_shapes
 from .state import FAULT_LEFT_GRID, FAULT_NON_FINITE, FAULT_NONE, State, read_step, upload_loss, write_step, write_x
 from .step import clear_grid, run_serial, substep
-from .tape import tape_gradient
+from .tape import tape_gradient, tape_gradients_in_child
 from .transfer import check_step
 
 
@@ -243,18 +243,17 @@ class Simulator:
     def gradient_tape(self, controls, validation=False):
         """The same gradient as backward(), through ti.ad.Tape on the same forward kernels (a test oracle).
 
-        Allocates a second, grad-enabled copy of the fields on first call (refused first if it would not fit).
+        Allocates a second, grad-enabled copy of the fields on first call (refused first if it would not fit). In
+        3D, where Taichi was not initialised for the Tape (runtime.ensure(cfg, tape=True) before building this
+        Simulator), the Tape runs in a child process that is (its kernels compile there, about a minute each call).
         """
         self._require_loss()
-        if self.dim == 3:
-            raise ConfigError("gradient_tape: ti.ad.Tape is the oracle of the 2D kernels only; in 3D the loop over "
-                              "the stencil's first axis is a runtime loop (a full 4x4x4 unroll takes many minutes "
-                              "to compile), which Taichi 1.7.4's autodiff differentiates wrongly: check a 3D "
-                              "gradient against central differences (mls-mpm check does)")
         controls = self._controls(controls)
         if self._tape_state is None:
             check_memory(self.cfg, self.n_particles, grids=loss_grid_shapes(self.loss),
                          position_loss=isinstance(self.loss, PositionLoss), tape=True)
+        if runtime.needs_scalarized(self.cfg, True) and not runtime.RUNTIME.settings.scalarized:
+            return tape_gradients_in_child([(self.cfg, self.state(0), self.loss, controls)], validation)[0][1]
         _, grad, self._tape_state = tape_gradient(self.cfg, self.state(0), self.loss, controls, validation,
                                                   self._tape_state)
         return grad

@@ -1,4 +1,16 @@
-"""Taichi's autodiff (ti.ad.Tape) over the forward kernels: the test oracle, never the production path."""
+"""Taichi's autodiff (ti.ad.Tape) over the forward kernels: the test oracle, never the production path.
+
+In 3D the Tape needs Taichi initialised with matrices scalarized (runtime.needs_scalarized), which production runs
+are not; where the running Taichi is not, `tape_gradients_in_child` runs the Tape in a child process initialised
+for it (re-initialising this one would free the caller's fields).
+"""
+import os
+import pickle
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
 import numpy as np
 import taichi as ti
 
@@ -14,8 +26,10 @@ def tape_gradient(cfg, init, loss, controls, validation=False, state=None):
 
     init: the step-0 particle state {x, v, C, F}; state: a grad-enabled State to reuse, else one is made.
     The production path never calls this: it is the oracle of the tests, `mls-mpm check` and the benchmark.
+    Initialises Taichi for the Tape where it is not (runtime.ensure(cfg, tape=True)), which frees the fields of
+    simulators built under other settings: see tape_gradients_in_child.
     """
-    runtime.ensure(cfg)
+    runtime.ensure(cfg, tape=True)
     np_dtype = np.float64 if cfg.dtype == "f64" else np.float32
     t = state
     if t is None:
@@ -58,3 +72,36 @@ def tape_gradient(cfg, init, loss, controls, validation=False, state=None):
             losses.position_loss(t, T)
     surrogate = sum(float(np.sum(g.seed.to_numpy() * g.m.to_numpy())) for g in ot_grids)
     return t.loss[None] - surrogate + ot_value, t.F_pc.grad.to_numpy().astype(np.float64), t
+
+
+def tape_gradients_in_child(jobs, validation=False):
+    """[(loss, dL/dF_pc)] of tape_gradient for each job (cfg, init, loss, controls), computed in one child Python
+    process that initialises Taichi for the Tape (each job's kernels compile there: about a minute in 3D)."""
+    with tempfile.TemporaryDirectory(prefix="mls_mpm_tape_") as folder:
+        src, dst = Path(folder) / "jobs.pkl", Path(folder) / "results.pkl"
+        with open(src, "wb") as fh:
+            pickle.dump((jobs, validation), fh)
+        root = str(Path(__file__).resolve().parents[1])  # the folder holding this mls_mpm
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")]))}
+        done = subprocess.run([sys.executable, "-m", "mls_mpm.tape", str(src), str(dst)], env=env,
+                              capture_output=True, text=True)
+        if done.returncode != 0 or not dst.exists():
+            last = (done.stderr.strip().splitlines() or ["no output"])[-1]
+            raise RuntimeError(f"ti.ad.Tape in a child process failed (exit {done.returncode}): {last}")
+        with open(dst, "rb") as fh:
+            return pickle.load(fh)
+
+
+def _child(src, dst):
+    with open(src, "rb") as fh:
+        jobs, validation = pickle.load(fh)
+    results = []
+    for cfg, init, loss, controls in jobs:
+        L, grad, _ = tape_gradient(cfg, init, loss, controls, validation)
+        results.append((float(L), grad))
+    with open(dst, "wb") as fh:
+        pickle.dump(results, fh)
+
+
+if __name__ == "__main__":
+    _child(*sys.argv[1:3])

@@ -5,7 +5,7 @@ A particle whose stencil leaves the grid is skipped (never indexed outside it) a
 import taichi as ti
 
 from .config import STENCIL
-from .kernels import inside, join, node_N, slab_offsets, stencil, weights
+from .kernels import carry, inside, join, node_N, slab_offsets, stencil, weights
 from .material import stress
 from .state import FAULT_LEFT_GRID, FAULT_NON_FINITE
 
@@ -55,17 +55,28 @@ def p2g_particle(s: ti.template(), f, p, lane):
     """
     G = ti.Matrix.zero(float, s.dim, s.dim)
     base, fx = stencil(s.x[f, p], s.inv_dx)
-    if inside(base, s.n_grid):
-        w, _ = weights(fx)
-        Fs = control_sum(s, f, p)
-        G = affine_momentum(s, f, p, Fs, stress(Fs, s.mu, s.lam))
-        mv = s.m_p * (1.0 - s.dt * s.gamma) * s.v[f, p]
-        if ti.static(s.dim == 2):  # the stencil's outer loop: see kernels.slab_offsets
+    if ti.static(s.dim == 2):  # the stencil's outer loop: see kernels.slab_offsets
+        if inside(base, s.n_grid):
+            w, _ = weights(fx)
+            Fs = control_sum(s, f, p)
+            G = affine_momentum(s, f, p, Fs, stress(Fs, s.mu, s.lam))
+            mv = s.m_p * (1.0 - s.dt * s.gamma) * s.v[f, p]
             for i0 in ti.static(range(STENCIL)):
                 p2g_slab(s, f, lane, base, fx, w, G, mv, i0)
-        else:
-            for i0 in range(STENCIL):
-                p2g_slab(s, f, lane, base, fx, w, G, mv, i0)
+    else:
+        # 3D: the form the Tape oracle is verified with (tests/test_tape3d.py): the runtime loop runs no rows for a
+        # particle off the grid, G is a select, and each value read in the loop is carried (kernels.carry)
+        on = inside(base, s.n_grid)
+        w, _ = weights(fx)
+        Fs = control_sum(s, f, p)
+        G = ti.select(on, affine_momentum(s, f, p, Fs, stress(Fs, s.mu, s.lam)), G)
+        mv = s.m_p * (1.0 - s.dt * s.gamma) * s.v[f, p]
+        for i0 in range(ti.select(on, STENCIL, 0)):
+            fx = carry(fx)
+            w = carry(w)
+            G = carry(G)
+            mv = carry(mv)
+            p2g_slab(s, f, lane, base, fx, w, G, mv, i0)
     return G
 
 
@@ -84,16 +95,20 @@ def g2p_particle(s: ti.template(), f, p):
     """Gather particle p of step f + 1 from the grid velocities of step f (eq 18-21)."""
     x = s.x[f, p]
     base, fx = stencil(x, s.inv_dx)
-    if inside(base, s.n_grid):
-        w, _ = weights(fx)
-        v_new = ti.Vector.zero(float, s.dim)
-        C_new = ti.Matrix.zero(float, s.dim, s.dim)
-        if ti.static(s.dim == 2):  # the stencil's outer loop: see kernels.slab_offsets
+    on = inside(base, s.n_grid)
+    w, _ = weights(fx)
+    v_new = ti.Vector.zero(float, s.dim)
+    C_new = ti.Matrix.zero(float, s.dim, s.dim)
+    if ti.static(s.dim == 2):  # the stencil's outer loop: see kernels.slab_offsets
+        if on:
             for i0 in ti.static(range(STENCIL)):
                 v_new, C_new = g2p_slab(s, f, base, fx, w, i0, v_new, C_new)
-        else:
-            for i0 in range(STENCIL):
-                v_new, C_new = g2p_slab(s, f, base, fx, w, i0, v_new, C_new)
+    else:  # 3D: as in p2g_particle, no rows for a particle off the grid, and the loop's inputs carried
+        for i0 in range(ti.select(on, STENCIL, 0)):
+            fx = carry(fx)
+            w = carry(w)
+            v_new, C_new = g2p_slab(s, f, base, fx, w, i0, v_new, C_new)
+    if on:
         F_new = (ti.Matrix.identity(float, s.dim) + s.dt * C_new) @ control_sum(s, f, p)  # eq 20
         x_new = x + s.dt * v_new  # eq 21
         s.v[f + 1, p] = v_new

@@ -21,8 +21,9 @@ def taichi_f64():
 def taichi_f64_module():
     """Float64 again at the start of a module (use with pytestmark = pytest.mark.usefixtures(...)): a module
     run earlier may have switched Taichi to float32, and kernels that use the default float type (the material
-    kernels in the tests) would then silently compute in float32. A no-op when Taichi is already float64."""
-    runtime.ensure(mls_mpm.SimConfig(dtype="f64", arch="cpu"))
+    kernels in the tests) would then silently compute in float32, or tests/test_tape3d.py may have left matrices
+    scalarized (the manual kernels then compile ~3x slower). A no-op when Taichi is already plain float64."""
+    runtime.ensure(mls_mpm.SimConfig(dtype="f64", arch="cpu"), tape=False)
 
 
 TINY = 1e-30

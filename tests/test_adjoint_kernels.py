@@ -7,9 +7,8 @@ inputs, with w put in the AdjointState as the upstream adjoint dL/dy. Every inpu
 Tape to a symmetric relative error of at most 1e-8 (both are exact in exact arithmetic; float64 round-off
 through one kernel stays near 1e-14). The grid-operation test runs in 2D (16^2 grid) and in 3D (12^3 grid,
 the smallest grid with walls of 3 cells): one code path, two dimensions (SimConfig.dim). The kernels with a
-stencil loop are Taped in 2D only: in 3D their loop over the stencil's first axis is a runtime loop (see
-mls_mpm.kernels.slab_offsets), which Taichi 1.7.4's autodiff differentiates wrongly; tests/test_kernels3d.py
-checks their 3D twins against central differences instead.
+stencil loop run here in 2D; their 3D twins run in tests/test_tape3d.py (Taichi initialised for the 3D Tape)
+and against central differences in tests/test_kernels3d.py.
 
 Reverse kernels accumulate (+=) into adjoints they share with other kernels, so those adjoints are
 prefilled with random values b and the test compares (result - b) with the Tape.
@@ -568,7 +567,11 @@ EDGE_X = {2: [(0.04, 0.5), (0.97, 0.2), (0.5, 0.03), (0.96, 0.98)],
 
 @pytest.fixture(scope="module")
 def loss_pair():
-    dim = 2
+    return make_loss_pair(2)
+
+
+def make_loss_pair(dim):
+    """A Pair with loss grids of every kind (loss_specs), colours, a position target and random inputs."""
     rng = np.random.default_rng(21)
     grids, colors = loss_specs(rng, dim)
     pair = Pair(kernel_config(dim), loss_grids=grids, position_loss=True, colors=True)

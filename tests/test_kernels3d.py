@@ -1,11 +1,9 @@
 """The 3D twins of the reverse-kernel tests: each hand-written reverse kernel against central differences of its
 forward kernel, in float64, on a 12^3 grid (thesis eq 41-71).
 
-In 2D tests/test_adjoint_kernels.py compares every reverse kernel with ti.ad.Tape. In 3D the stencil's loop over
-its first axis is a runtime loop (mls_mpm.kernels.slab_offsets: a full 4x4x4 unroll of these kernels compiles for
-many minutes), and Taichi 1.7.4's autodiff of a runtime loop that accumulates into locals is wrong, so the oracle
-here is the directional derivative: for the random linear functional L = sum_y w . y of the kernel's outputs y,
-<dL/dz, d> from the reverse kernel against (L(z + eps d) - L(z - eps d)) / (2 eps) along a random unit direction d
+The Tape checks of the same kernels in 3D are in tests/test_tape3d.py (in a Taichi runtime initialised for the 3D
+Tape); this module checks them against a second, independent oracle, the directional derivative: for the random
+linear functional L = sum_y w . y of the kernel's outputs y, <dL/dz, d> from the reverse kernel against (L(z + eps d) - L(z - eps d)) / (2 eps) along a random unit direction d
 of its inputs z, eps = 1e-6. L is smooth in z there (no particle crosses a cell boundary within eps), so the
 difference is exact to its truncation O(eps^2) and its cancellation, 64 ulps of |L| over eps (as `mls-mpm check`
 states it): each check passes at rel err <= 1e-6 or an absolute error below that floor (observed: rel err
