@@ -43,12 +43,10 @@ def bench_gradient(quick=False, emit=print, arch="cpu", out=None, dims=(2, 3)):
         case = dict(case, arch=arch)
         steps = case_steps(case, quick)
         man = warm(case, "manual", steps)
-        # the Tape differentiates the 2D kernels only (Simulator.gradient_tape refuses 3D and says why)
-        tape = warm(case, "tape", steps) if case.get("dim", 2) == 2 else None
+        tape = warm(case, "tape", steps)  # in 3D its child initialises Taichi for the Tape (runtime.ensure)
         if backend == "cpu":  # on a GPU the fields live in device memory: host RSS says nothing of them
             man["peak_mib"] -= warm(case, "manual", steps, tiny=True)["peak_mib"]
-            if tape:
-                tape["peak_mib"] -= warm(case, "tape", steps, tiny=True)["peak_mib"]
+            tape["peak_mib"] -= warm(case, "tape", steps, tiny=True)["peak_mib"]
         rows.append((name, case, steps, man, tape))
     memory = (MEMORY_CPU if backend == "cpu" else
               "not measured (the fields live in device memory; the estimate of the preallocated fields is in "
@@ -58,18 +56,14 @@ def bench_gradient(quick=False, emit=print, arch="cpu", out=None, dims=(2, 3)):
         "Tape / manual (fwd+bwd) | manual MiB | Tape MiB | manual / Tape memory |")
     say("|---|---|---|---|---|---|---|---|---|---|")
     for name, case, steps, man, tape in rows:
-        ran = {man["backend"]} | ({tape["backend"]} if tape else set())
+        ran = {man["backend"], tape["backend"]}
         if ran != {backend}:
             raise RuntimeError(f"benchmark children ran on {', '.join(sorted(ran))}, not {backend}")
         fwd, bwd = man["forward_ms"], man["backward_ms"]
         m_man = man["peak_mib"]
-        if tape:
-            tp, m_tape = tape["tape_ms"], tape["peak_mib"]
-            mem = f"{m_man:.0f} | {m_tape:.0f} | {m_man / m_tape:.2f}" if backend == "cpu" else "- | - | -"
-            taped = f"{tp:.3f} | {tp / (fwd + bwd):.2f}"
-        else:
-            mem = f"{m_man:.0f} | - | -" if backend == "cpu" else "- | - | -"
-            taped = "- (2D only) | -"
+        tp, m_tape = tape["tape_ms"], tape["peak_mib"]
+        mem = f"{m_man:.0f} | {m_tape:.0f} | {m_man / m_tape:.2f}" if backend == "cpu" else "- | - | -"
+        taped = f"{tp:.3f} | {tp / (fwd + bwd):.2f}"
         say(f"| {case_label(case, steps)} | {fwd:.3f} | {case['particles'] / fwd * 1e3 / 1e6:.2f} M | {bwd:.3f} | "
             f"{bwd / fwd:.2f} | {taped} | {mem} |")
     speed = {name: case["particles"] / man["forward_ms"] for name, case, _, man, _ in rows}  # particle-steps/ms
