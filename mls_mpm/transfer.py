@@ -64,8 +64,9 @@ def p2g_particle(s: ti.template(), f, p, lane):
             for i0 in ti.static(range(STENCIL)):
                 p2g_slab(s, f, lane, base, fx, w, G, mv, i0)
     else:
-        # 3D: the form the Tape oracle is verified with (tests/test_tape3d.py): the runtime loop runs no rows for a
-        # particle off the grid, G is a select, and each value read in the loop is carried (kernels.carry)
+        # 3D, in the form the Tape oracle needs (tests/test_tape3d.py): the runtime loop runs no rows for a particle
+        # off the grid (the same loop inside `if inside(...)` came out wrong under the Tape), G is a select, and
+        # each value read in the loop is carried (kernels.carry)
         on = inside(base, s.n_grid)
         w, _ = weights(fx)
         Fs = control_sum(s, f, p)
