@@ -21,7 +21,7 @@ reproduces the run and a user can edit it:
   against 0.87 without it);
 - L-BFGS, the quality's iteration count and time budget (optimize.max_seconds); at default and best quality two
   rounds (optimize.rounds): the second starts at rest from where the first ended and optimizes again, which
-  finishes what one long optimization stalls on (a square into a thin L: iou 0.61 in one round, 0.84 in two
+  finishes what one long optimization stalls on (a square into a thin L: iou 0.61 in one round, 0.84-0.94 in two
   at default, BENCHMARKS.md).
 
 In 3D (sim.dim = 3: INITIAL or TARGET a mesh, "shape:..." or "extrude:IMAGE", shapes.py; or dim=3) the same

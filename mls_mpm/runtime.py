@@ -110,10 +110,15 @@ class TaichiRuntime:
 
     def _fits(self, cfg, tape) -> bool:
         cur = self.current()
+        if tape is None:
+            matrices_fit = True
+        elif tape:
+            matrices_fit = cur is not None and (cur.scalarized or not needs_scalarized(cfg, tape))
+        else:
+            matrices_fit = cur is not None and not cur.scalarized
         return (cur is not None and cur.dtype == cfg.dtype and cur.arch in BACKENDS[cfg.arch]
                 and (cur.arch != "cpu" or cur.threads == cfg.cpu_threads) and not impl.current_cfg().fast_math
-                and (tape is None or (cur.scalarized or not needs_scalarized(cfg, tape) if tape
-                                      else not cur.scalarized)))
+                and matrices_fit)
 
     def ensure(self, cfg, tape=None) -> int:
         """Initialise Taichi for cfg's arch, dtype and CPU threads, and for `tape` (see the module function
@@ -157,9 +162,9 @@ RUNTIME = TaichiRuntime()
 
 def needs_scalarized(cfg, tape) -> bool:
     """Whether Taichi must scalarize matrices (ti.init(force_scalarize_matrix=True)) for cfg: for the Tape oracle in
-    3D, where the stencil's first axis is a runtime loop whose reverse Taichi 1.7.4 builds on its autodiff stack
-    (adstack), which it supports for scalar locals only. The manual kernels compile about 3x slower scalarized,
-    so production runs never are."""
+    3D, where the stencil's first axis is a runtime loop; Taichi 1.7.4's reverse of that loop came out right only
+    scalarized (found by trial, with kernels.carry and kernels.axis0). Production runs never are: the manual
+    kernels compile slower scalarized."""
     return bool(tape) and cfg.dim == 3
 
 

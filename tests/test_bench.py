@@ -188,7 +188,8 @@ def test_bench_gradient_writes_out_after_the_check(tmp_path, monkeypatch):
     bench_gradient(quick=True, out=out, emit=lambda *_: None)
     table = out.read_text().splitlines()
     rows = [line for line in table if line.startswith("| f32, 32^3 grid, 16384 particles")]
-    assert len(rows) == 1 and rows[0].endswith("| 1.000 | 16.38 M | 1.200 | 1.20 | 4.400 | 2.00 | 60 | 160 | 0.38 |")
+    assert len(rows) == 1
+    assert rows[0].endswith("| 1.000 | 16.38 M | 1.200 | 1.20 | 4.400 | 2.00 | 60 | 160 | 0.38 |")
     assert any(line.startswith("3D forward particle-steps/s (f32, 32^3) / 2D (f32, 64^2), this run: 2.00") for line in table)
     assert any(line.startswith("One 10-step window of the 3D successor's settings (17157 particles, 32^3): forward + "
                                "manual backward 0.02 s") for line in table)

@@ -169,8 +169,6 @@ def test_manual_gradient_matches_tape(problems, kind, dim=2):
     assert all(np.linalg.norm(g[k]) > 1e-3 * np.linalg.norm(g) for k in range(len(g)))
 
 
-
-
 @pytest.mark.parametrize("kind, dim", [(k, 2) for k in KINDS] + [(k, 3) for k in KINDS_3D],
                          ids=[f"{k}-2d" for k in KINDS] + [f"{k}-3d" for k in KINDS_3D])
 def test_manual_gradient_matches_central_differences(problems, kind, dim):
