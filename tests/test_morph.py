@@ -106,8 +106,8 @@ def test_the_chosen_scene_loads_with_steps_in_bounds(tmp_path, initial, target, 
     assert scene.sim.n_grid == morph.QUALITIES[quality].n_grid
     assert scene.optimize.method == "lbfgs" and scene.optimize.iterations == morph.QUALITIES[quality].iterations
     assert scene.optimize.max_seconds == morph.QUALITIES[quality].max_seconds
-    assert scene.optimize.rounds == morph.QUALITIES[quality].rounds == (1 if quality == "fast" else 2)
-    assert ("2 rounds" in choice.line(quality)) == (quality != "fast")
+    assert scene.optimize.rounds == morph.QUALITIES[quality].rounds == {"fast": 1, "default": 3, "best": 2}[quality]
+    assert (f"{scene.optimize.rounds} rounds" in choice.line(quality)) == (quality != "fast")
     # the stages: the coarse grid first, then every grid; colour scenes: both from the start (no schedule)
     grids = scene.loss.grids
     stages = [s["grids"] for s in scene.optimize.schedule]
