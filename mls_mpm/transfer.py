@@ -53,25 +53,20 @@ def p2g_particle(s: ti.template(), f, p, lane):
     Returns G_p (zero for a particle whose stencil leaves the grid), which the step's check_particle tests, so
     that the stress (an SVD in 3D) is evaluated once per particle and step.
     """
-    G = ti.Matrix.zero(float, s.dim, s.dim)
     base, fx = stencil(s.x[f, p], s.inv_dx)
+    on = inside(base, s.n_grid)
+    w, _ = weights(fx)
+    Fs = control_sum(s, f, p)
+    G = ti.select(on, affine_momentum(s, f, p, Fs, stress(Fs, s.mu, s.lam)), ti.Matrix.zero(float, s.dim, s.dim))
+    mv = s.m_p * (1.0 - s.dt * s.gamma) * s.v[f, p]
     if ti.static(s.dim == 2):  # the stencil's outer loop: see kernels.slab_offsets
-        if inside(base, s.n_grid):
-            w, _ = weights(fx)
-            Fs = control_sum(s, f, p)
-            G = affine_momentum(s, f, p, Fs, stress(Fs, s.mu, s.lam))
-            mv = s.m_p * (1.0 - s.dt * s.gamma) * s.v[f, p]
+        if on:
             for i0 in ti.static(range(STENCIL)):
                 p2g_slab(s, f, lane, base, fx, w, G, mv, i0)
     else:
         # 3D, in the form the Tape oracle needs (tests/test_tape3d.py): the runtime loop runs no rows for a particle
-        # off the grid (the same loop inside `if inside(...)` came out wrong under the Tape), G is a select, and
-        # each value read in the loop is carried (kernels.carry)
-        on = inside(base, s.n_grid)
-        w, _ = weights(fx)
-        Fs = control_sum(s, f, p)
-        G = ti.select(on, affine_momentum(s, f, p, Fs, stress(Fs, s.mu, s.lam)), G)
-        mv = s.m_p * (1.0 - s.dt * s.gamma) * s.v[f, p]
+        # off the grid (the same loop inside `if on` came out wrong under the Tape), and each value read in the
+        # loop is carried (kernels.carry)
         for i0 in range(ti.select(on, STENCIL, 0)):
             fx = carry(fx)
             w = carry(w)

@@ -2,8 +2,9 @@
 
 Forward: the polar rotation is a proper rotation with R^T F symmetric, also for inverted F. Reverse: against
 central finite differences of stress (every case, repeated singular values included), against ti.ad.Tape through
-stress (cases without repeated singular values: there the Tape also differentiates the Jacobi starting guess,
-whose derivative the Newton steps suppress only to ~1e-8), against linear elasticity at F = I, and at the guarded
+stress (cases without repeated singular values: where F is inverted or ill-conditioned the Tape also
+differentiates the Jacobi starting guess, whose derivative the Newton steps suppress only to ~1e-8; both of
+polar_rotation's starting guesses are exercised, with F on either side of HIGHAM_Q), against linear elasticity at F = I, and at the guarded
 singular set of tr(S) I - S. One kernel of each kind is compiled for all cases (the Tape one takes about a minute).
 """
 import numpy as np
@@ -11,7 +12,7 @@ import pytest
 import taichi as ti
 
 from conftest import rel_err
-from mls_mpm.material import polar_rotation, stress
+from mls_mpm.material import HIGHAM_Q, polar_rotation, stress
 from test_adjoint_kernels import stress_adjoint, stress_functional  # dimension-generic (template fields)
 
 pytestmark = pytest.mark.usefixtures("taichi_f64_module")
@@ -30,6 +31,16 @@ def rot(axis, angle):
 
 
 R0, R1 = rot([1, 2, 3], 0.7), rot([-2, 1, 0.5], 2.1)
+
+
+def at_q(q):
+    """The singular value a with J / (|F|_F^2 / 3)^(3/2) = q for F = R diag(a, 0.9, 1.2) R' (bisection: the ratio
+    grows with a on [0, 0.9])."""
+    lo, hi = 0.0, 0.9
+    for _ in range(200):
+        a = 0.5 * (lo + hi)
+        lo, hi = (a, hi) if a * 1.08 / ((a * a + 2.25) / 3.0) ** 1.5 < q else (lo, a)
+    return 0.5 * (lo + hi)
 rng = np.random.default_rng(11)
 SMOOTH = {  # no repeated singular value
     "near I": np.eye(3) + 0.05 * rng.standard_normal((3, 3)),
@@ -39,6 +50,9 @@ SMOOTH = {  # no repeated singular value
     "inverted": R1 @ np.diag([1.2, 0.9, -0.5]) @ R0,
     "nearly singular (J = 1e-9)": R0 @ np.diag([1.3, 0.7, 1e-9]) @ R1,
     "1e-3 from the singular set of M": R0 @ np.diag([1.5, 0.8, -0.799]) @ R1,
+    # either side of the line between polar_rotation's two starting guesses (Higham's iteration / the SVD)
+    "just above HIGHAM_Q": R0 @ np.diag([at_q(1.02 * HIGHAM_Q), 0.9, 1.2]) @ R1,
+    "just below HIGHAM_Q": R0 @ np.diag([at_q(0.98 * HIGHAM_Q), 0.9, 1.2]) @ R1,
 }
 DIAGONAL_REPEATED = {  # repeated singular values but F^T F diagonal: Jacobi has nothing to rotate
     "identity": np.eye(3),
