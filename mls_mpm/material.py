@@ -184,11 +184,12 @@ def polar_rotation(F):
     atan2(0, 0) = 0, R = I is taken.
 
     3D: a start R (higham_rotation where F is well-conditioned with J > 0, see HIGHAM_Q, else U V^T of the
-    rotation-variant SVD, svd_rotation), then Newton steps R <- R cay(omega) (one after Higham, NEWTON_STEPS after the SVD)
-    on skew(R^T F) = 0: with S' = R^T F, (tr(S) I - S) omega = axial(S' - S'^T), S = sym(S') (rotation_solve).
-    Each step zeroes the first-order error, so the result is at round-off and, under ti.ad.Tape, its derivative
-    is the exact dR = R [omega]_x (polar_rotation's closed form in adjoint.material.stress_reverse) whatever the
-    derivative of the starting guess. Where tr(S) I - S is singular R is not unique; the SVD's R is kept.
+    rotation-variant SVD, svd_rotation), then Newton steps R <- R cay(omega) (newton_rotation: one after Higham,
+    NEWTON_STEPS after the SVD) on skew(R^T F) = 0: with S' = R^T F, (tr(S) I - S) omega = axial(S' - S'^T), S =
+    sym(S') (rotation_solve). Each step zeroes the first-order error, so the result is at round-off and, under
+    ti.ad.Tape, its derivative is the exact dR = R [omega]_x (polar_rotation's closed form in
+    adjoint.material.stress_reverse) whatever the derivative of the starting guess. Where tr(S) I - S is singular R
+    is not unique; the SVD's R is kept.
     """
     if ti.static(F.n == 2):
         a = F[0, 0] + F[1, 1]

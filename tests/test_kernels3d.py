@@ -2,13 +2,13 @@
 forward kernel, in float64, on a 12^3 grid (thesis eq 41-71).
 
 The Tape checks of the same kernels in 3D are in tests/test_tape3d.py (in a Taichi runtime initialised for the 3D
-Tape); this module checks them against a second, independent oracle, the directional derivative: for the random
-linear functional L = sum_y w . y of the kernel's outputs y, <dL/dz, d> from the reverse kernel against
-(L(z + eps d) - L(z - eps d)) / (2 eps) along a random unit direction d of its inputs z, eps = 1e-6. L is smooth in z there (no particle crosses a cell boundary within eps), so the
-difference is exact to its truncation O(eps^2) and its cancellation, 64 ulps of |L| over eps (as `mls-mpm check`
-states it): each check passes at rel err <= 1e-6 or an absolute error below that floor (observed: rel err
-1e-10 to 2e-6, the larger ones where <dL/dz, d> is 1e-5 of |L| and the floor decides). A direction is drawn
-per input set, so each input's adjoint is tested alone and then all together.
+Tape); this module checks them against a second, independent oracle, the directional derivative: for the random linear
+functional L = sum_y w . y of the kernel's outputs y, <dL/dz, d> from the reverse kernel against
+(L(z + eps d) - L(z - eps d)) / (2 eps) along a random unit direction d of its inputs z, eps = 1e-6. L is smooth in z
+there (no particle crosses a cell boundary within eps), so the difference is exact to its truncation O(eps^2) and its
+cancellation, 64 ulps of |L| over eps (as `mls-mpm check` states it): each check passes at rel err <= 1e-6 or an
+absolute error below that floor (observed: rel err 1e-10 to 2e-6, the larger ones where <dL/dz, d> is 1e-5 of |L| and
+the floor decides). A direction is drawn per input set, so each input's adjoint is tested alone and then all together.
 """
 import numpy as np
 import pytest

@@ -1,11 +1,11 @@
 """The 3D fixed-corotated material (eq 9) and its closed-form reverse (eq 57, second term), in float64.
 
-Forward: the polar rotation is a proper rotation with R^T F symmetric, also for inverted F. Reverse: against
-central finite differences of stress (every case, repeated singular values included), against ti.ad.Tape through
-stress (cases without repeated singular values: where F is inverted or ill-conditioned the Tape also
-differentiates the Jacobi starting guess, whose derivative the Newton steps suppress only to ~1e-8; both of
-polar_rotation's starting guesses are exercised, with F on either side of HIGHAM_Q), against linear elasticity at F = I, and at the guarded
-singular set of tr(S) I - S. One kernel of each kind is compiled for all cases (the Tape one takes about a minute).
+Forward: the polar rotation is a proper rotation with R^T F symmetric, also for inverted F. Reverse: against central
+finite differences of stress (every case, repeated singular values included), against ti.ad.Tape through stress (cases
+without repeated singular values: where F is inverted or ill-conditioned the Tape also differentiates the Jacobi
+starting guess, whose derivative the Newton steps suppress only to ~1e-8; both of polar_rotation's starting guesses
+are exercised, with F on either side of HIGHAM_Q), against linear elasticity at F = I, and at the guarded singular set
+of tr(S) I - S. One kernel of each kind is compiled for all cases (the Tape one takes about a minute).
 """
 import numpy as np
 import pytest
@@ -41,6 +41,8 @@ def at_q(q):
         a = 0.5 * (lo + hi)
         lo, hi = (a, hi) if a * 1.08 / ((a * a + 2.25) / 3.0) ** 1.5 < q else (lo, a)
     return 0.5 * (lo + hi)
+
+
 rng = np.random.default_rng(11)
 SMOOTH = {  # no repeated singular value
     "near I": np.eye(3) + 0.05 * rng.standard_normal((3, 3)),
