@@ -59,6 +59,8 @@ NO_TWIN = {
         "cofactor": "differentiated by adjoint.material.cofactor_adjoint (2D: linear, cofactor itself; 3D: bilinear)",
         "polar_rotation": "differentiated in closed form by adjoint.material.rotation_adjoint (2D dR/dtheta, 3D R [omega])",
         "svd_rotation": "polar_rotation's starting guess: its Newton steps make dR independent of it",
+        "higham_rotation": "polar_rotation's other starting guess: its Newton step makes dR independent of it",
+        "newton_rotation": "polar_rotation's Newton step: rotation_adjoint differentiates the converged R",
         "jacobi_rotate": "part of svd_rotation's starting guess (no derivative needed)",
         "sort_columns": "part of svd_rotation's starting guess (no derivative needed)",
         "unit_or": "part of svd_rotation's starting guess (no derivative needed)",

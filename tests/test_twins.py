@@ -28,7 +28,7 @@ def test_every_forward_function_has_its_twin_or_a_reason(module):
     assert not set(twins) & set(exempt), f"{module}: listed both with and without a twin"
     assert forward == set(twins) | set(exempt), (
         f"mls_mpm/{module}.py: not in adjoint.TWINS or NO_TWIN: {sorted(forward - set(twins) - set(exempt))}; "
-        f"listed but not defined: {sorted(set(twins) | set(exempt) - forward)}")
+        f"listed but not defined: {sorted((set(twins) | set(exempt)) - forward)}")
     reverse = importlib.import_module(f"adjoint.{module}")
     for name, equations in twins.items():
         assert hasattr(reverse, f"{name}_reverse"), f"adjoint/{module}.py has no {name}_reverse"
