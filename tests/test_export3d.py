@@ -47,6 +47,18 @@ def test_splat_and_gather_match_the_b_spline_sums():
     assert grid_m.sum() == pytest.approx(m.sum(), rel=1e-12)  # every stencil on the grid: mass conserved
 
 
+def test_splat_and_gather_drop_the_nodes_beyond_the_grid():
+    rng = np.random.default_rng(1)
+    x = rng.uniform(0.0, 1.0, (60, 3))  # stencils that reach past both ends of the 8^3 grid
+    m = rng.uniform(0.5, 2.0, 60)
+    grid_m, _ = splat(x, m, 8)
+    nodes = np.stack(np.meshgrid(*[np.arange(8)] * 3, indexing="ij"), -1) / 8.0
+    N = np.prod(bspline((nodes[None] - x[:, None, None, None]) * 8), axis=-1)  # the nodes that exist only
+    np.testing.assert_allclose(grid_m, np.einsum("p,pijk->ijk", m, N), rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(gather(grid_m, x), np.einsum("ijk,pijk->p", grid_m, N), rtol=1e-12, atol=1e-15)
+    assert grid_m.sum() < m.sum()  # mass whose nodes are off the grid is dropped
+
+
 def test_trilinear_is_exact_at_nodes_and_linear_between():
     g = np.arange(4 ** 3, dtype=float).reshape(4, 4, 4)  # linear in the index: 16 i + 4 j + k
     pts = np.array([[0.25, 0.5, 0.0], [0.125, 0.3, 0.6]])
