@@ -56,9 +56,9 @@ def parts(cfg, n_particles, grids=(), position_loss=False, tape=False):
              copies * T * nodes * node * w + (0 if tape else nodes * node * w)),  # + the adjoint's one grid
     ]
     lanes = 0 if tape else cfg.lanes(N)
-    if lanes:  # forward private grids (m, p) and the adjoint's (dL/dv)
+    if lanes:  # forward private grids (m, p) and the adjoint's (dL/dv); one step's G_p (State.G_step)
         out.append(Part(f"the {lanes} per-thread grids of {n}{sq} nodes", "sim.n_grid or sim.threads",
-                        lanes * nodes * (1 + 2 * d) * w))  # m, p and dL/dv
+                        lanes * nodes * (1 + 2 * d) * w + N * d * d * w))
     if grids:
         field = numpy = 0
         for res, ch, has_alpha in grids:

@@ -8,7 +8,7 @@ Grid f + 1 is cleared by step f's grid loop, after nothing reads it, so each ste
 import taichi as ti
 
 from .grid import grid_op_node
-from .transfer import check_particle, g2p_particle, p2g_particle
+from .transfer import check_particle, g2p_particle, p2g_particle, particle_G
 
 
 @ti.func
@@ -53,18 +53,22 @@ def grid_node(s: ti.template(), f, I):
 def step_loops(s: ti.template(), f):
     """Check and P2G (eq 14-16), grid operations (eq 17 + gravity + walls), G2P (eq 18-21) of step f.
 
-    At a kernel's top level these are three parallel loops. With lanes (CPU), each thread scatters its share
+    At a kernel's top level these are parallel loops. With lanes (CPU), each thread scatters its share
     of the particles into a private grid with plain adds, which the grid loop sums: float atomics
-    (compare-and-swap on a CPU) would cost more than the whole step.
+    (compare-and-swap on a CPU) would cost more than the whole step. There the stresses come first, in a loop of
+    their own (into s.G_step): a tight loop overlaps one particle's long chain of dependent operations (the 3D
+    polar decomposition) with the next one's, which the 4^dim-node scatter between them prevents.
     """
     if ti.static(s.lanes > 0):
+        for p in range(s.n_particles):
+            s.G_step[p] = particle_G(s, f, p)
         ti.loop_config(block_dim=1)
         for lane in range(s.lanes):
             for p in range(lane * s.lane_chunk, ti.min((lane + 1) * s.lane_chunk, s.n_particles)):
-                check_particle(s, f, p, p2g_particle(s, f, p, lane))
+                check_particle(s, f, p, p2g_particle(s, f, p, lane, s.G_step[p]))
     else:
         for p in range(s.n_particles):
-            check_particle(s, f, p, p2g_particle(s, f, p, 0))
+            check_particle(s, f, p, p2g_particle(s, f, p, 0, particle_G(s, f, p)))
     for I in ti.grouped(ti.ndrange(*s.grid_shape)):
         grid_node(s, f, I)
     for p in range(s.n_particles):

@@ -47,17 +47,23 @@ def scatter_node(s: ti.template(), f, lane, I, dm, dp):
 
 
 @ti.func
-def p2g_particle(s: ti.template(), f, p, lane):
+def particle_G(s: ti.template(), f, p):
+    """G_p of eq 61 for particle p of step f (its stress at F + F_pc), zero for a particle whose stencil leaves the
+    grid: what p2g_particle scatters and the step's check_particle tests, evaluated once per particle and step."""
+    on = inside(stencil(s.x[f, p], s.inv_dx)[0], s.n_grid)
+    Fs = control_sum(s, f, p)
+    return ti.select(on, affine_momentum(s, f, p, Fs, stress(Fs, s.mu, s.lam)), ti.Matrix.zero(float, s.dim, s.dim))
+
+
+@ti.func
+def p2g_particle(s: ti.template(), f, p, lane, G):
     """Scatter particle p of step f onto its 4^dim nodes: m_i += N m_p (eq 15), p_i += N [m_p v_p (1 - dt gamma) + G_p dpos] (eq 16).
 
-    Returns G_p (zero for a particle whose stencil leaves the grid), which the step's check_particle tests, so
-    that the stress (an SVD in 3D) is evaluated once per particle and step.
+    G: particle_G(s, f, p), returned for the step's check_particle.
     """
     base, fx = stencil(s.x[f, p], s.inv_dx)
     on = inside(base, s.n_grid)
     w, _ = weights(fx)
-    Fs = control_sum(s, f, p)
-    G = ti.select(on, affine_momentum(s, f, p, Fs, stress(Fs, s.mu, s.lam)), ti.Matrix.zero(float, s.dim, s.dim))
     mv = s.m_p * (1.0 - s.dt * s.gamma) * s.v[f, p]
     if ti.static(s.dim == 2):  # the stencil's outer loop: see kernels.slab_offsets
         if on:
@@ -147,7 +153,7 @@ def check_particle(s: ti.template(), f, p, G):
 def p2g(s: ti.template(), f: ti.i32):
     """P2G of step f into grid f (the grid of step f must be zero)."""
     for p in range(s.n_particles):
-        p2g_particle(s, f, p, 0)
+        p2g_particle(s, f, p, 0, particle_G(s, f, p))
 
 
 @ti.kernel
