@@ -1,4 +1,6 @@
 """Cubic B-spline weights and the 4^dim stencil (eq 1-2: N(x) = prod_d N1(x_d / dx)), for dim = 2 and 3."""
+import itertools
+
 import taichi as ti
 from taichi.lang import impl
 
@@ -18,15 +20,45 @@ from .config import STENCIL
 
 
 def slab_offsets(dim):
-    """The offsets along axes 1.. of one slab (4^(dim - 1) nodes, axis 1 outermost, as ti.ndrange); loop over them
-    with `for o2 in ti.static(slab_offsets(dim))` so that the loop unrolls at compile time."""
-    return ti.grouped(ti.ndrange(*[STENCIL] * (dim - 1)))
+    """The offsets along axes 1.. of one slab (4^(dim - 1) nodes, axis 1 outermost, as ti.ndrange) as tuples of
+    Python ints; loop over them with `for o2 in ti.static(slab_offsets(dim))` so that the loop unrolls at compile
+    time, and pass o2 on as a ti.template() (its entries stay ints that ti.static can test: `along_slab`)."""
+    return tuple(itertools.product(range(STENCIL), repeat=dim - 1))
 
 
 @ti.func
-def join(i0, o2):
+def join(i0, o2: ti.template()):
     """The node offset (i0, o2) of slab i0."""
-    return ti.Vector([i0] + [o2[d] for d in ti.static(range(o2.n))])
+    return ti.Vector([i0] + [o2[d] for d in ti.static(range(len(o2)))])
+
+
+@ti.func
+def along_slab(a, M, o2: ti.template()):
+    """a + sum_d o2[d] M[:, d + 1]: at node (i0, o2) of slab i0, a quantity affine in the node offset o, whose value
+    at (i0, 0, ..) is a and whose slope along axis d + 1 is M[:, d + 1], e.g. m_p v_p + G (o - fx) dx of eq 16
+    with M = G dx. The offsets are compile-time ints: zero terms drop out and ones are plain adds, so a node costs
+    a few adds where the product G (x_i - x_p) costs dim^2 multiply-adds."""
+    r = a
+    for d in ti.static(range(len(o2))):
+        if ti.static(o2[d] == 1):
+            r += M[:, d + 1]
+        elif ti.static(o2[d] > 1):
+            r += float(o2[d]) * M[:, d + 1]
+    return r
+
+
+@ti.func
+def outer_slab(Q, u, o2: ti.template()):
+    """Q + u (0, o2)^T: node (i0, o2)'s term of sum_i u_i o_i^T along axes 1.. (the caller adds i0 times the
+    slab's sum of u for axis 0). With the sum of u_i, it gives sum_i u_i (x_i - x_p)^T = dx (sum_i u_i o_i^T -
+    (sum_i u_i) fx^T) (eq 19, 60) in a few adds per node instead of dim^2 multiply-adds."""
+    for d in ti.static(range(len(o2))):
+        for r in ti.static(range(u.n)):
+            if ti.static(o2[d] == 1):
+                Q[r, d + 1] += u[r]
+            elif ti.static(o2[d] > 1):
+                Q[r, d + 1] += float(o2[d]) * u[r]
+    return Q
 
 
 @ti.func
@@ -92,18 +124,18 @@ def carry(v):
 
 
 @ti.func
-def node_N(w, i0, o2):
+def node_N(w, i0, o2: ti.template()):
     """N(x_i - x_p) = prod_d N1 for node base + (i0, o2) (eq 1)."""
     N = axis0(w, i0)
-    for d in ti.static(range(o2.n)):
+    for d in ti.static(range(len(o2))):
         N *= w[o2[d], d + 1]
     return N
 
 
 @ti.func
-def node_weight(w, dw, i0, o2, inv_dx):
+def node_weight(w, dw, i0, o2: ti.template(), inv_dx):
     """N(x_i - x_p) for node base + (i0, o2), and its gradient with respect to x_p (eq 2)."""
-    dim = ti.static(o2.n + 1)
+    dim = ti.static(len(o2) + 1)
     dN = ti.Vector.zero(float, dim)
     for e in ti.static(range(dim)):
         g = axis0(dw, i0) if ti.static(e == 0) else axis0(w, i0)

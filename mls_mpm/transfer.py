@@ -5,7 +5,7 @@ A particle whose stencil leaves the grid is skipped (never indexed outside it) a
 import taichi as ti
 
 from .config import STENCIL
-from .kernels import carry, inside, join, node_N, slab_offsets, stencil, weights
+from .kernels import along_slab, carry, inside, join, node_N, outer_slab, slab_offsets, stencil, weights
 from .material import stress
 from .state import FAULT_LEFT_GRID, FAULT_NON_FINITE
 
@@ -84,12 +84,14 @@ def p2g_particle(s: ti.template(), f, p, lane, G):
 
 @ti.func
 def p2g_slab(s: ti.template(), f, lane, base, fx, w, G, mv, i0):
-    """The scatter of p2g_particle onto slab i0 of the stencil."""
+    """The scatter of p2g_particle onto slab i0 of the stencil: mv + G (x_i - x_p), x_i - x_p = (o - fx) dx, as
+    kernels.along_slab from its value at (i0, 0, ..)."""
+    Gdx = G * s.dx
+    a = mv - Gdx @ fx + i0 * Gdx[:, 0]
     for o2 in ti.static(slab_offsets(s.dim)):
         o = join(i0, o2)
         N = node_N(w, i0, o2)
-        dpos = (o - fx) * s.dx  # x_i - x_p
-        scatter_node(s, f, lane, base + o, N * s.m_p, N * (mv + G @ dpos))
+        scatter_node(s, f, lane, base + o, N * s.m_p, N * along_slab(a, Gdx, o2))
 
 
 @ti.func
@@ -100,16 +102,17 @@ def g2p_particle(s: ti.template(), f, p):
     on = inside(base, s.n_grid)
     w, _ = weights(fx)
     v_new = ti.Vector.zero(float, s.dim)
-    C_new = ti.Matrix.zero(float, s.dim, s.dim)
+    Q = ti.Matrix.zero(float, s.dim, s.dim)  # sum_i N v_i o^T
     if ti.static(s.dim == 2):  # the stencil's outer loop: see kernels.slab_offsets
         if on:
             for i0 in ti.static(range(STENCIL)):
-                v_new, C_new = g2p_slab(s, f, base, fx, w, i0, v_new, C_new)
+                v_new, Q = g2p_slab(s, f, base, w, i0, v_new, Q)
     else:  # 3D: as in p2g_particle, no rows for a particle off the grid, and the loop's inputs carried
         for i0 in range(ti.select(on, STENCIL, 0)):
-            fx = carry(fx)
             w = carry(w)
-            v_new, C_new = g2p_slab(s, f, base, fx, w, i0, v_new, C_new)
+            v_new, Q = g2p_slab(s, f, base, w, i0, v_new, Q)
+    # eq 19: C = 3/dx^2 sum_i N v_i (x_i - x_p)^T = 3/dx (sum_i N v_i o^T - v_new fx^T)
+    C_new = 3.0 * s.inv_dx * (Q - v_new.outer_product(fx))
     if on:
         F_new = (ti.Matrix.identity(float, s.dim) + s.dt * C_new) @ control_sum(s, f, p)  # eq 20
         x_new = x + s.dt * v_new  # eq 21
@@ -120,16 +123,17 @@ def g2p_particle(s: ti.template(), f, p):
 
 
 @ti.func
-def g2p_slab(s: ti.template(), f, base, fx, w, i0, v_new, C_new):
-    """The gather of g2p_particle from slab i0 of the stencil, added to v_new, C_new."""
+def g2p_slab(s: ti.template(), f, base, w, i0, v_new, Q):
+    """The gather of g2p_particle from slab i0 of the stencil: sum_i N v_i added to v_new (eq 18), and
+    sum_i N v_i o^T (o the node's offset in the stencil) to Q (eq 19's sum, see kernels.outer_slab)."""
+    slab = ti.Vector.zero(float, s.dim)
     for o2 in ti.static(slab_offsets(s.dim)):
-        o = join(i0, o2)
-        N = node_N(w, i0, o2)
-        dpos = (o - fx) * s.dx
-        v_i = s.grid_v[f, base + o]
-        v_new += N * v_i  # eq 18
-        C_new += 3.0 * s.inv_dx * s.inv_dx * N * v_i.outer_product(dpos)  # eq 19
-    return v_new, C_new
+        Nv = node_N(w, i0, o2) * s.grid_v[f, base + join(i0, o2)]
+        slab += Nv
+        Q = outer_slab(Q, Nv, o2)
+    for r in ti.static(range(s.dim)):
+        Q[r, 0] += i0 * slab[r]
+    return v_new + slab, Q
 
 
 @ti.func
