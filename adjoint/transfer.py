@@ -62,7 +62,7 @@ def g2p_slab_reverse(s: ti.template(), a: ti.template(), f, lane, base, fx, w, d
     """Slab i0 of g2p_particle_reverse: dL/dv_i of its nodes (eq 48), and their terms of dL/dx_p (eq 66-69) and
     of sum_i N v_i, added to adj_x, sum_v."""
     M = 3.0 * s.inv_dx * adj_C_new  # 3/dx^2 adj_C_new (x_i - x_p) = M (o - fx): kernels.along_slab
-    a0 = adj_v_new - M @ fx + i0 * M[:, 0]
+    a0 = adj_v_new - M @ (fx - 1.0) + (i0 - 1) * M[:, 0]  # at node (i0, 1, ..)
     for o2 in ti.static(slab_offsets(s.dim)):
         o = join(i0, o2)
         N, dN = node_weight(w, dw, i0, o2, s.inv_dx)
@@ -98,14 +98,14 @@ def p2g_particle_reverse(s: ti.template(), a: ti.template(), f, p):
         mv = drag * s.v[f, p]
         adj_x = ti.Vector.zero(float, s.dim)
         sum_adj_p = ti.Vector.zero(float, s.dim)  # sum_i N dL/dp_i
-        Q = ti.Matrix.zero(float, s.dim, s.dim)  # sum_i N dL/dp_i o^T
+        Q = ti.Matrix.zero(float, s.dim, s.dim)  # sum_i N dL/dp_i (o - 1)^T
         if ti.static(s.dim == 2):  # the stencil's outer loop: see mls_mpm.kernels.slab_offsets
             for i0 in ti.static(range(STENCIL)):
                 adj_x, sum_adj_p, Q = p2g_slab_reverse(s, a, base, fx, w, dw, G, mv, i0, adj_x, sum_adj_p, Q)
         else:
             for i0 in range(STENCIL):
                 adj_x, sum_adj_p, Q = p2g_slab_reverse(s, a, base, fx, w, dw, G, mv, i0, adj_x, sum_adj_p, Q)
-        adj_G = s.dx * (Q - sum_adj_p.outer_product(fx))  # sum_i N dL/dp_i (x_i - x_p)^T (eq 60)
+        adj_G = s.dx * (Q - sum_adj_p.outer_product(fx - 1.0))  # sum_i N dL/dp_i (x_i - x_p)^T (eq 60)
         adj_x -= G.transpose() @ sum_adj_p
         adj_v = drag * sum_adj_p
         adj_A = -3.0 * s.inv_dx * s.inv_dx * s.dt * s.vol * adj_G
@@ -121,10 +121,10 @@ def p2g_particle_reverse(s: ti.template(), a: ti.template(), f, p):
 @ti.func
 def p2g_slab_reverse(s: ti.template(), a: ti.template(), base, fx, w, dw, G, mv, i0, adj_x, sum_adj_p, Q):
     """Slab i0 of p2g_particle_reverse: its nodes' terms of dL/dx_p (eq 64-65), of sum_i N dL/dp_i and of
-    sum_i N dL/dp_i o^T (Q: dL/dG's sum, see mls_mpm.kernels.outer_slab). mv + G (x_i - x_p) as in
+    sum_i N dL/dp_i (o - 1)^T (Q: dL/dG's sum, see mls_mpm.kernels.outer_slab). mv + G (x_i - x_p) as in
     mls_mpm.transfer.p2g_slab."""
     Gdx = G * s.dx
-    a0 = mv - Gdx @ fx + i0 * Gdx[:, 0]
+    a0 = mv - Gdx @ (fx - 1.0) + (i0 - 1) * Gdx[:, 0]
     slab = ti.Vector.zero(float, s.dim)
     for o2 in ti.static(slab_offsets(s.dim)):
         o = join(i0, o2)
@@ -136,7 +136,7 @@ def p2g_slab_reverse(s: ti.template(), a: ti.template(), base, fx, w, dw, G, mv,
         slab += Np
         Q = outer_slab(Q, Np, o2)
     for r in ti.static(range(s.dim)):
-        Q[r, 0] += i0 * slab[r]
+        Q[r, 0] += (i0 - 1) * slab[r]
     return adj_x, sum_adj_p + slab, Q
 
 

@@ -33,31 +33,39 @@ def join(i0, o2: ti.template()):
 
 
 @ti.func
+def scaled_add(r, v, k: ti.template()):
+    """r + k v for a compile-time integer k: nothing for 0, an add or a subtract for +-1."""
+    if ti.static(k == 1):
+        r += v
+    elif ti.static(k == -1):
+        r -= v
+    elif ti.static(k != 0):
+        r += float(k) * v
+    return r
+
+
+@ti.func
 def along_slab(a, M, o2: ti.template()):
-    """a + sum_d o2[d] M[:, d + 1]: at node (i0, o2) of slab i0, a quantity affine in the node offset o, whose value
-    at (i0, 0, ..) is a and whose slope along axis d + 1 is M[:, d + 1], e.g. m_p v_p + G (o - fx) dx of eq 16
-    with M = G dx. The offsets are compile-time ints: zero terms drop out and ones are plain adds, so a node costs
-    a few adds where the product G (x_i - x_p) costs dim^2 multiply-adds."""
+    """a + sum_d (o2[d] - 1) M[:, d + 1]: at node (i0, o2) of slab i0, a quantity affine in the node offset o, whose
+    value at (i0, 1, ..) is a and whose slope along axis d + 1 is M[:, d + 1], e.g. m_p v_p + G (o - fx) dx of eq
+    16 with M = G dx and a = m_p v_p + G ((i0, 1, ..) - fx) dx. The offsets are compile-time ints: a node costs a
+    few adds where G (x_i - x_p) costs dim^2 multiply-adds. Centred on node 1 (offsets -1..2, fx - 1 in [0, 1)) so
+    that no term is larger than in (o - fx) itself: the float32 round-off stays that of the direct product."""
     r = a
     for d in ti.static(range(len(o2))):
-        if ti.static(o2[d] == 1):
-            r += M[:, d + 1]
-        elif ti.static(o2[d] > 1):
-            r += float(o2[d]) * M[:, d + 1]
+        r = scaled_add(r, M[:, d + 1], o2[d] - 1)
     return r
 
 
 @ti.func
 def outer_slab(Q, u, o2: ti.template()):
-    """Q + u (0, o2)^T: node (i0, o2)'s term of sum_i u_i o_i^T along axes 1.. (the caller adds i0 times the
-    slab's sum of u for axis 0). With the sum of u_i, it gives sum_i u_i (x_i - x_p)^T = dx (sum_i u_i o_i^T -
-    (sum_i u_i) fx^T) (eq 19, 60) in a few adds per node instead of dim^2 multiply-adds."""
+    """Q + u (0, o2 - 1)^T: node (i0, o2)'s term of sum_i u_i (o_i - 1)^T along axes 1.. (the caller adds i0 - 1
+    times the slab's sum of u for axis 0). With the sum of u_i, it gives sum_i u_i (x_i - x_p)^T =
+    dx (sum_i u_i (o_i - 1)^T - (sum_i u_i) (fx - 1)^T) (eq 19, 60) in a few adds per node instead of dim^2
+    multiply-adds, centred as along_slab."""
     for d in ti.static(range(len(o2))):
         for r in ti.static(range(u.n)):
-            if ti.static(o2[d] == 1):
-                Q[r, d + 1] += u[r]
-            elif ti.static(o2[d] > 1):
-                Q[r, d + 1] += float(o2[d]) * u[r]
+            Q[r, d + 1] = scaled_add(Q[r, d + 1], u[r], o2[d] - 1)
     return Q
 
 

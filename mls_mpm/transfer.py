@@ -87,7 +87,7 @@ def p2g_slab(s: ti.template(), f, lane, base, fx, w, G, mv, i0):
     """The scatter of p2g_particle onto slab i0 of the stencil: mv + G (x_i - x_p), x_i - x_p = (o - fx) dx, as
     kernels.along_slab from its value at (i0, 0, ..)."""
     Gdx = G * s.dx
-    a = mv - Gdx @ fx + i0 * Gdx[:, 0]
+    a = mv - Gdx @ (fx - 1.0) + (i0 - 1) * Gdx[:, 0]  # at node (i0, 1, ..)
     for o2 in ti.static(slab_offsets(s.dim)):
         o = join(i0, o2)
         N = node_N(w, i0, o2)
@@ -102,7 +102,7 @@ def g2p_particle(s: ti.template(), f, p):
     on = inside(base, s.n_grid)
     w, _ = weights(fx)
     v_new = ti.Vector.zero(float, s.dim)
-    Q = ti.Matrix.zero(float, s.dim, s.dim)  # sum_i N v_i o^T
+    Q = ti.Matrix.zero(float, s.dim, s.dim)  # sum_i N v_i (o - 1)^T
     if ti.static(s.dim == 2):  # the stencil's outer loop: see kernels.slab_offsets
         if on:
             for i0 in ti.static(range(STENCIL)):
@@ -111,8 +111,8 @@ def g2p_particle(s: ti.template(), f, p):
         for i0 in range(ti.select(on, STENCIL, 0)):
             w = carry(w)
             v_new, Q = g2p_slab(s, f, base, w, i0, v_new, Q)
-    # eq 19: C = 3/dx^2 sum_i N v_i (x_i - x_p)^T = 3/dx (sum_i N v_i o^T - v_new fx^T)
-    C_new = 3.0 * s.inv_dx * (Q - v_new.outer_product(fx))
+    # eq 19: C = 3/dx^2 sum_i N v_i (x_i - x_p)^T = 3/dx (sum_i N v_i (o - 1)^T - v_new (fx - 1)^T)
+    C_new = 3.0 * s.inv_dx * (Q - v_new.outer_product(fx - 1.0))
     if on:
         F_new = (ti.Matrix.identity(float, s.dim) + s.dt * C_new) @ control_sum(s, f, p)  # eq 20
         x_new = x + s.dt * v_new  # eq 21
@@ -125,14 +125,14 @@ def g2p_particle(s: ti.template(), f, p):
 @ti.func
 def g2p_slab(s: ti.template(), f, base, w, i0, v_new, Q):
     """The gather of g2p_particle from slab i0 of the stencil: sum_i N v_i added to v_new (eq 18), and
-    sum_i N v_i o^T (o the node's offset in the stencil) to Q (eq 19's sum, see kernels.outer_slab)."""
+    sum_i N v_i (o - 1)^T (o the node's offset in the stencil) to Q (eq 19's sum, see kernels.outer_slab)."""
     slab = ti.Vector.zero(float, s.dim)
     for o2 in ti.static(slab_offsets(s.dim)):
         Nv = node_N(w, i0, o2) * s.grid_v[f, base + join(i0, o2)]
         slab += Nv
         Q = outer_slab(Q, Nv, o2)
     for r in ti.static(range(s.dim)):
-        Q[r, 0] += i0 * slab[r]
+        Q[r, 0] += (i0 - 1) * slab[r]
     return v_new + slab, Q
 
 
