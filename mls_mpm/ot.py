@@ -37,6 +37,7 @@ eps (H(a) + H(b)) / 2 of the exact transport cost OT_0 (tests/test_ot.py checks 
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -59,6 +60,18 @@ def _cost_1d(res: int, eps: float) -> np.ndarray:
     return 0.5 * d * d / eps
 
 
+@functools.lru_cache(maxsize=256)
+def _axis_kernel(res: int, eps: float) -> tuple:
+    """(fast, matrix) for one axis of `res` nodes at blur eps: (True, exp(-C / eps)) where no entry underflows
+    (see FAST_COST), else (False, C / eps). Cached: a Sinkhorn loop asks for the same few (res, eps) thousands of
+    times, and on the small loss grids building them cost as much as the blur itself. Read-only."""
+    cost = _cost_1d(res, eps)
+    fast = bool(cost.max() <= FAST_COST)
+    matrix = np.exp(-cost) if fast else cost
+    matrix.setflags(write=False)
+    return fast, matrix
+
+
 def softmin(h: np.ndarray, eps: float) -> np.ndarray:
     """-eps log sum_j exp(h_j - C_ij / eps) for every node i, one 1D log-sum-exp per axis (the separable kernel).
 
@@ -66,14 +79,14 @@ def softmin(h: np.ndarray, eps: float) -> np.ndarray:
     (h all -inf) gets +inf.
     """
     out = h
-    for axis in range(h.ndim):
-        cost = _cost_1d(h.shape[axis], eps)
-        moved = np.moveaxis(out, axis, -1)  # (..., j)
-        if cost.max() <= FAST_COST:
-            blurred = _blur_lse(moved, np.exp(-cost))
-        else:
-            blurred = _logsumexp(moved[..., None, :] - cost)  # (..., i)
-        out = np.moveaxis(blurred, -1, axis)
+    with np.errstate(divide="ignore"):  # log(0) = -inf for an empty sum
+        for axis in range(h.ndim):
+            fast, matrix = _axis_kernel(h.shape[axis], eps)
+            if fast:
+                out = _blur_lse(out, matrix, axis)
+            else:
+                moved = np.moveaxis(out, axis, -1)  # (..., j)
+                out = np.moveaxis(_logsumexp(moved[..., None, :] - matrix), -1, axis)  # (..., i)
     return -eps * out
 
 
@@ -85,20 +98,24 @@ def softmin(h: np.ndarray, eps: float) -> np.ndarray:
 FAST_COST = 575.0
 
 
-def _blur_lse(z: np.ndarray, kernel: np.ndarray) -> np.ndarray:
-    """log sum_j exp(z_j) kernel_ij over the last axis of z, for a symmetric kernel (rows of -inf give -inf)."""
-    top = z.max(axis=-1, keepdims=True)
-    top = np.where(np.isfinite(top), top, 0.0)
-    with np.errstate(divide="ignore"):
-        return np.log(np.exp(z - top) @ kernel) + top
+def _blur_lse(z: np.ndarray, kernel: np.ndarray, axis: int) -> np.ndarray:
+    """log sum_j exp(z_j) kernel_ij along `axis` of z (C-ordered), for a symmetric kernel (lines of -inf give
+    -inf). The product runs on z in its own memory order, as (before, j, after) stacks: no transposed copies."""
+    top = z.max(axis=axis, keepdims=True)
+    top[~np.isfinite(top)] = 0.0
+    e = np.exp(z - top)
+    if axis == z.ndim - 1:
+        s = e @ kernel
+    else:
+        s = (kernel @ e.reshape(math.prod(z.shape[:axis]), z.shape[axis], -1)).reshape(z.shape)
+    return np.log(s) + top
 
 
 def _logsumexp(z: np.ndarray) -> np.ndarray:
     """log sum_j exp(z_ij) over the last axis, shifted by the row's largest entry (rows of -inf give -inf)."""
     top = z.max(axis=-1, keepdims=True)
-    top = np.where(np.isfinite(top), top, 0.0)
-    with np.errstate(divide="ignore"):
-        return np.log(np.exp(z - top).sum(axis=-1)) + top[..., 0]
+    top[~np.isfinite(top)] = 0.0
+    return np.log(np.exp(z - top).sum(axis=-1)) + top[..., 0]
 
 
 def _log(a: np.ndarray) -> np.ndarray:
