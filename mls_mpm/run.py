@@ -7,8 +7,9 @@ Files in the output folder, all written atomically (mode 0666 minus the umask):
   frames/, animation.gif, sheet.png, loss.png   (see render_run; a 3D run also particles/ and meshes/)
   .lock           held by the running job (mls_mpm/lock.py), removed when it ends
 
-checkpoint.npz is rewritten at every checkpoint of the optimizer (see mls_mpm/optimize.py: after every control
-step of gd, every step of adam and positions, every iteration of lbfgs) and after every finished round; it holds
+checkpoint.npz is rewritten at the checkpoints of the optimizer (see mls_mpm/optimize.py: after every control
+step of gd, every step of adam and positions, every iteration of lbfgs; at most one every CHECKPOINT_SECONDS,
+and always the last one before an interrupt) and after every finished round; it holds
 the finished rounds, the initial state of the next one and the optimizer state of the current one. `--resume`
 restarts from the last one written, and ends bit for bit where an uninterrupted run ends. When it records every
 round as done (the run was killed while writing its result), the resume only re-simulates the last round and
@@ -134,15 +135,14 @@ def _run(scene, prob, sim, out, resume, emit, should_stop, render, t0):
         method = staged(METHODS[opt.method], stages(scene, r), seconds, now)
         sim.set_initial(**starts[r])
 
-        def on_checkpoint(state):
-            _save_checkpoint(ckpt, scene, done, starts, state, elapsed + time.perf_counter() - t0)
-
+        saver = _Throttled(lambda state, at: _save_checkpoint(ckpt, scene, done, starts, state, elapsed + at - t0))
         if opt.rounds > 1:
             emit(f"round {r + 1}/{opt.rounds}")
-        res = method(sim, sim.zero_controls(), opt, on_checkpoint=on_checkpoint, should_stop=should_stop,
+        res = method(sim, sim.zero_controls(), opt, on_checkpoint=saver, should_stop=should_stop,
                      emit=emit, resume=opt_state)
         opt_state = None
         if res.reason == "interrupted":
+            saver.flush()  # the state the optimizer checkpointed just before it returned
             emit(f"interrupted: progress saved to {ckpt}; continue with --resume")
             return {"scene": scene.name, "interrupted": True, "wall_seconds": elapsed + time.perf_counter() - t0}
         done.append(res)
@@ -257,6 +257,34 @@ def _remove_stale_renders(out, emit):
     if found:
         emit(f"removed the renders of an earlier run from {out}: "
              + ", ".join(n + ("/" if n in SEQUENCE_DIRS else "") for n in found))
+
+
+# The optimizers checkpoint after every iteration (an L-BFGS state at 64^2 is ~12 MB: 9% of a morph's time when
+# every one was written); a checkpoint less than this many seconds after the last one written is held back, and
+# written if the optimizer then returns interrupted (its last act before returning). So an interrupt (Ctrl-C,
+# SIGTERM) loses nothing; a kill that gives no chance to save (SIGKILL, power loss) loses at most this much work.
+CHECKPOINT_SECONDS = 2.0
+
+
+class _Throttled:
+    """on_checkpoint for an optimizer: write(state, clock reading) at most every CHECKPOINT_SECONDS; flush()
+    writes the state held back, if any (only right after the optimizer returned: its arrays are unchanged)."""
+
+    def __init__(self, write, clock=time.perf_counter):
+        self.write, self.clock, self.last, self.held = write, clock, -math.inf, None
+
+    def __call__(self, state):
+        now = self.clock()
+        if now - self.last >= CHECKPOINT_SECONDS:
+            self.write(state, now)
+            self.last, self.held = now, None
+        else:
+            self.held = (state, now)
+
+    def flush(self):
+        if self.held is not None:
+            self.write(*self.held)
+            self.held = None
 
 
 def _save_checkpoint(path, scene, done, starts, opt_state, elapsed):

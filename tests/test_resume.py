@@ -372,3 +372,22 @@ def test_a_second_job_in_a_held_folder_is_refused(tmp_path):
         with pytest.raises(FolderBusyError):  # a second lock in the same process is refused too
             with folder_lock(tmp_path, "render"):
                 pass
+
+
+def test_checkpoints_are_throttled_and_the_last_one_before_an_interrupt_is_written():
+    """run._Throttled: the first checkpoint is written at once, later ones within CHECKPOINT_SECONDS of the last
+    write are held back (only the newest is kept), one past it is written, and flush() writes the one held back
+    (what run does when the optimizer returns interrupted), once."""
+    now = [100.0]
+    written = []
+    saver = run_module._Throttled(lambda state, at: written.append((state["i"], at)), clock=lambda: now[0])
+    step = run_module.CHECKPOINT_SECONDS / 4
+    for i in range(10):
+        saver({"i": i})
+        now[0] += step
+    # writes at t = 100 (i = 0), 100 + 4 steps (i = 4), 100 + 8 steps (i = 8); i = 9 is held back
+    assert written == [(0, 100.0), (4, 100.0 + 4 * step), (8, 100.0 + 8 * step)]
+    saver.flush()
+    assert written[-1] == (9, 100.0 + 9 * step)  # with the clock reading of its own call
+    saver.flush()
+    assert len(written) == 4  # nothing held back any more
