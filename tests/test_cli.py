@@ -447,9 +447,12 @@ def test_refusal_in_a_real_process(tmp_path):
 # during start-up lands inside main, which says one line; `render` stops on SIGINT/SIGTERM like `run`.
 
 # Sends this process SIGINT the moment `module` is first imported, then runs the CLI as its console script does.
+# SIGINT gets Python's own handler first, as in a process started from a terminal: a test run started in the
+# background (nohup ... &) passes SIGINT on ignored, and Python then installs no handler, so nothing is raised.
 INTERRUPT_AT_IMPORT = """
 import os, signal, sys
 
+signal.signal(signal.SIGINT, signal.default_int_handler)
 
 class Interrupt:
     def find_spec(self, name, path=None, target=None):
