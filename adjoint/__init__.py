@@ -39,6 +39,7 @@ TWINS = {
         "grid_node": "eq 49-53",
         "step_loops": "eq 47-71",
         "substep": "eq 47-71",
+        "run_parallel": "eq 47-71",
         "run_serial": "eq 47-71",
     },
 }
@@ -55,6 +56,7 @@ NO_TWIN = {
     "grid": {
         "wall_mask": "piecewise constant: grid_op_node_reverse applies the same mask (eq 50)",
         "free_velocity": "differentiated inline by grid_op_node_reverse (eq 50-53)",
+        "velocity_slot": "an index into s.grid_v, no value to differentiate",
     },
     "material": {
         "cofactor": "differentiated by adjoint.material.cofactor_adjoint (2D: linear, cofactor itself; 3D: bilinear)",

@@ -2,6 +2,7 @@
 import taichi as ti
 
 from mls_mpm.config import STENCIL
+from mls_mpm.grid import velocity_slot
 from mls_mpm.kernels import along_slab, inside, join, node_weight, outer_slab, slab_offsets, stencil, weights
 from mls_mpm.material import polar_rotation, rotated_stress
 from mls_mpm.transfer import affine_momentum, control_sum
@@ -66,7 +67,7 @@ def g2p_slab_reverse(s: ti.template(), a: ti.template(), f, lane, base, fx, w, d
     for o2 in ti.static(slab_offsets(s.dim)):
         o = join(i0, o2)
         N, dN = node_weight(w, dw, i0, o2, s.inv_dx)
-        v_i = s.grid_v[f, base + o]
+        v_i = s.grid_v[velocity_slot(s, f), base + o]
         adj_v_i = along_slab(a0, M, o2)  # adj_v_new + 3/dx^2 adj_C_new (x_i - x_p)
         scatter_adj_node(s, a, lane, base + o, N * adj_v_i)
         adj_x += dN * v_i.dot(adj_v_i)  # adj_C_new : v_i dpos^T = v_i . adj_C_new dpos

@@ -35,10 +35,20 @@ def free_velocity(s: ti.template(), f, I):
 
 
 @ti.func
+def velocity_slot(s: ti.template(), f):
+    """Where v_i of step f lives in s.grid_v: at f when every step keeps its own (State.every_velocity), else in
+    the one slot 0."""
+    slot = 0
+    if ti.static(s.every_velocity):
+        slot = f
+    return slot
+
+
+@ti.func
 def grid_op_node(s: ti.template(), f, I):
     """v_i = p_i / m_i (eq 17) + dt g, then walls (free_velocity: the guarded division)."""
     v = free_velocity(s, f, I)
-    s.grid_v[f, I] = v * wall_mask(s, I, v)
+    s.grid_v[velocity_slot(s, f), I] = v * wall_mask(s, I, v)
 
 
 @ti.kernel

@@ -43,6 +43,7 @@ def parts(cfg, n_particles, grids=(), position_loss=False, tape=False):
     nodes = n ** d  # the grid grows as n_grid^dim per stored step
     state = 2 * d + 2 * d * d  # x, v (d each), C, F (d^2 each) of one particle
     node = 1 + 2 * d  # m, p, v of one node
+    stored = node if tape else 1 + d  # per stored step: m, p, v under the Tape; m, p with one velocity slot
     sq = "^3" if d == 3 else "^2"
     copies = 2 if tape else 1  # needs_grad doubles every differentiated field
     colors = any(ch == 3 for _, ch, _ in grids)
@@ -50,10 +51,12 @@ def parts(cfg, n_particles, grids=(), position_loss=False, tape=False):
         Part(f"the particle states (x, v, C, F) of {T + 1} steps x {N} particles",
              "sim.steps or sim.particles_per_cell",
              copies * (T + 1) * N * state * w),
-        Part(f"the grid states (m, p, v) of {T} steps on the {n}{sq} grid",
+        Part(f"the grid states (m, p) of {T} steps on the {n}{sq} grid" if not tape else
+             f"the grid states (m, p, v) of {T} steps on the {n}{sq} grid",
              "sim.n_grid (in 3D the grid grows as n_grid^3 per stored step) or sim.steps" if d == 3 else
              "sim.n_grid or sim.steps",
-             copies * T * nodes * node * w + (0 if tape else nodes * node * w)),  # + the adjoint's one grid
+             # + (without the Tape) the one velocity slot and the adjoint's grid
+             copies * T * nodes * stored * w + (0 if tape else nodes * (d + node) * w)),
     ]
     lanes = 0 if tape else cfg.lanes(N)
     if lanes:  # forward private grids (m, p) and the adjoint's (dL/dv); one step's G_p (State.G_step)

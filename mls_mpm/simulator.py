@@ -7,7 +7,7 @@ import numpy as np
 
 from adjoint.losses import evaluate_reverse
 from adjoint.state import AdjointState
-from adjoint.step import run_serial_reverse, substep_reverse
+from adjoint.step import run_parallel_reverse, run_serial_reverse
 
 from . import losses, runtime
 from .config import ConfigError
@@ -15,7 +15,7 @@ from .errors import SimulationError
 from .losses import ColorLoss, PositionLoss
 from .memory import check_memory, loss_grid_shapes
 from .state import FAULT_LEFT_GRID, FAULT_NON_FINITE, FAULT_NONE, State, read_step, upload_loss, write_step, write_x
-from .step import clear_grid, run_serial, substep
+from .step import clear_grid, run_parallel, run_serial
 from .tape import tape_gradient, tape_gradients_in_child
 from .transfer import check_step
 
@@ -151,8 +151,7 @@ class Simulator:
         if self._serial:
             run_serial(s, start, self.cfg.steps)
         else:
-            for f in range(start, self.cfg.steps):
-                substep(s, f)
+            run_parallel(s, start, self.cfg.steps)
         check_step(s, self.cfg.steps)
         self._raise_fault(s)
         self._start = start
@@ -186,8 +185,7 @@ class Simulator:
         if self._serial:
             run_serial_reverse(s, a, stop, self.cfg.steps)
         else:
-            for f in range(self.cfg.steps - 1, stop - 1, -1):
-                substep_reverse(s, a, f)
+            run_parallel_reverse(s, a, stop, self.cfg.steps)
         self._stop = stop
         fault = int(a.fault[None])
         if fault >= 0:  # the latest step, and in it the lowest particle (stored as N - 1 - p, see adjoint.step)

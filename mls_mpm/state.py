@@ -58,7 +58,7 @@ class State:
     """
 
     def __init__(self, cfg, n_particles, loss_grids=(), position_loss=False, colors=False, needs_grad=False,
-                 lanes=0):
+                 lanes=0, every_velocity=False):
         dt_ = real(cfg.dtype)
         T = cfg.steps
         d = self.dim = cfg.dim
@@ -99,7 +99,11 @@ class State:
         # grid state of steps 0..T-1 (step T has no grid update)
         self.grid_m = ti.field(dt_, shape=(T,) + grid, needs_grad=g)  # node mass m_i^n (eq 15)
         self.grid_p = ti.Vector.field(d, dt_, shape=(T,) + grid, needs_grad=g)  # node momentum p_i^n (eq 16)
-        self.grid_v = ti.Vector.field(d, dt_, shape=(T,) + grid, needs_grad=g)  # node velocity v_i^n (eq 17)
+        # node velocity v_i^n (eq 17): every step under the Tape (needs_grad) or where asked (every_velocity, the
+        # kernel tests), else one slot that the grid loop of each step overwrites and the reverse pass recomputes
+        # from m_i, p_i (adjoint.step): (1 + 2 dim) / (1 + dim) the grid memory of a step otherwise
+        self.every_velocity = g or every_velocity
+        self.grid_v = ti.Vector.field(d, dt_, shape=((T if self.every_velocity else 1),) + grid, needs_grad=g)
         if lanes:
             self.lane_m = ti.field(dt_, shape=(lanes,) + grid)  # private node mass of one thread
             self.lane_p = ti.Vector.field(d, dt_, shape=(lanes,) + grid)  # private node momentum of one thread

@@ -1,7 +1,8 @@
 """Forward time stepping, f -> f + 1, in two schedules that share the same per-particle/per-node bodies.
 
 Launch cost dominates small scenes (~50 us per parallel loop on 2 CPU threads), so:
-- `substep(s, f)`: one launch per step, three parallel loops (large scenes, GPUs);
+- `substep(s, f)` (`run_parallel(s, f0, f1)` over a range): one launch per step, parallel loops (large scenes,
+  GPUs);
 - `run_serial(s, f0, f1)`: one launch for a whole range of steps, every loop serial (small scenes on a CPU).
 Grid f + 1 is cleared by step f's grid loop, after nothing reads it, so each step needs no extra clear loop.
 """
@@ -79,6 +80,12 @@ def step_loops(s: ti.template(), f):
 def substep(s: ti.template(), f: ti.i32):
     """Step f in one launch of parallel loops."""
     step_loops(s, f)
+
+
+def run_parallel(s, f0, f1):
+    """Steps f0..f1-1, one launch of parallel loops each (substep)."""
+    for f in range(f0, f1):
+        substep(s, f)
 
 
 @ti.kernel

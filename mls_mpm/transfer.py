@@ -5,6 +5,7 @@ A particle whose stencil leaves the grid is skipped (never indexed outside it) a
 import taichi as ti
 
 from .config import STENCIL
+from .grid import velocity_slot
 from .kernels import along_slab, carry, inside, join, node_N, outer_slab, slab_offsets, stencil, weights
 from .material import stress
 from .state import FAULT_LEFT_GRID, FAULT_NON_FINITE
@@ -128,7 +129,7 @@ def g2p_slab(s: ti.template(), f, base, w, i0, v_new, Q):
     sum_i N v_i (o - 1)^T (o the node's offset in the stencil) to Q (eq 19's sum, see kernels.outer_slab)."""
     slab = ti.Vector.zero(float, s.dim)
     for o2 in ti.static(slab_offsets(s.dim)):
-        Nv = node_N(w, i0, o2) * s.grid_v[f, base + join(i0, o2)]
+        Nv = node_N(w, i0, o2) * s.grid_v[velocity_slot(s, f), base + join(i0, o2)]
         slab += Nv
         Q = outer_slab(Q, Nv, o2)
     for r in ti.static(range(s.dim)):

@@ -127,3 +127,11 @@ class StopAt:
     def __call__(self):
         self.calls += 1
         return self.calls >= self.n
+
+
+def grid_velocity(sim, f):
+    """Grid velocity v_i of step f of sim's last forward pass: recomputed from its stored m_i, p_i by the forward's
+    own grid_op (eq 17, gravity, walls), since a Simulator keeps v_i in one slot that each step overwrites."""
+    from mls_mpm.grid import grid_op
+    grid_op(sim.fields, f)
+    return sim.fields.grid_v.to_numpy()[0]

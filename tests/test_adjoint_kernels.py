@@ -27,14 +27,14 @@ from adjoint.grid import grid_op_reverse
 from adjoint.losses import evaluate_reverse, grid_loss_reverse, ot_loss_reverse, position_loss_reverse, splat_reverse
 from adjoint.material import stress_reverse
 from adjoint.state import AdjointState, zero_step
-from adjoint.step import run_serial_reverse, substep_reverse
+from adjoint.step import run_parallel_reverse, run_serial_reverse
 from adjoint.transfer import g2p_reverse, p2g_reverse
 from conftest import max_rel_err, rel_err
 from mls_mpm import ColorLoss, MassLoss, OTLoss, SimConfig, losses, ot
 from mls_mpm.grid import grid_op
 from mls_mpm.material import stress
 from mls_mpm.state import State, upload_loss
-from mls_mpm.step import run_serial, substep
+from mls_mpm.step import run_parallel, run_serial
 from mls_mpm.transfer import g2p, p2g
 
 pytestmark = pytest.mark.usefixtures("taichi_f64_module")
@@ -107,14 +107,15 @@ class Pair:
     def __init__(self, cfg, n_particles=N_PARTICLES, **state_kw):
         self.cfg = cfg
         self.t = State(cfg, n_particles, needs_grad=True, **state_kw)
-        self.s = State(cfg, n_particles, **state_kw)
+        self.s = State(cfg, n_particles, every_velocity=True, **state_kw)  # v_i of every step, as the Tape's
         self.a = AdjointState(self.s, ti.f64)
         self.upstream = Upstream(n_particles, cfg.n_grid, cfg.dim)
         self.N, self.n, self.d = n_particles, cfg.n_grid, cfg.dim
 
     def put(self, name, value):
         getattr(self.t, name).from_numpy(value)
-        getattr(self.s, name).from_numpy(value)
+        if name != "grid_v" or self.s.every_velocity:  # one velocity slot (StepPair): the forward step writes it
+            getattr(self.s, name).from_numpy(value)
 
     def randomize(self, rng):
         """Random inputs at every step: x inside the grid (one particle outside), v, C ~ O(1), F near I."""
@@ -348,7 +349,8 @@ LANES = 2
 
 
 class StepPair(Pair):
-    """A Pair whose plain State runs the production step: with LANES private grids per thread, or serially."""
+    """A Pair whose plain State runs the production step: with LANES private grids per thread, or serially, and
+    one grid velocity slot (the reverse pass recomputes v_i from m_i, p_i)."""
 
     def __init__(self, cfg, lanes):
         super().__init__(cfg)
@@ -362,8 +364,10 @@ def step_pairs():
     return {"parallel": StepPair(cfg, LANES), "serial": StepPair(cfg, 0)}
 
 
-def run_step_pair(pair, f, w, upstream_nan=()):
-    """Tape over step f (p2g, grid_op, g2p) and the production reverse step on the same inputs and upstream w.
+def run_step_pair(pair, f, w, upstream_nan=(), n=1):
+    """Tape over steps f..f+n-1 (p2g, grid_op, g2p each) and the production reverse pass on the same inputs and
+    upstream w. With n = 2 the pass crosses a step boundary: the reverse grid loop of step f + 1 recomputes the
+    grid velocity of step f that the reverse G2P of step f reads (one velocity slot).
 
     Returns the Tape's dL/d(x, v, C, F)^f and dL/dF_pc. The upstream of the particles in upstream_nan is NaN.
     """
@@ -372,54 +376,59 @@ def run_step_pair(pair, f, w, upstream_nan=()):
         st.grid_m.fill(0.0)
         st.grid_p.fill(0.0)
     with ti.ad.Tape(loss=t.loss):
-        p2g(t, f)
-        grid_op(t, f)
-        g2p(t, f)
-        particle_functional(t, w, f + 1)
+        for g in range(f, f + n):
+            p2g(t, g)
+            grid_op(t, g)
+            g2p(t, g)
+        particle_functional(t, w, f + n)
     tape = tape_grads(t, PARTICLE_FIELDS, f)
     tape["F_pc"] = t.F_pc.grad.to_numpy()
+    # the reverse pass reads the forward's stored states (C^{f+1} of eq 57, grid v^f), so the forward runs first
     if s.lanes:
-        substep(s, f)  # the reverse step reads the forward's stored C^{f+1} (eq 57) and grid v^f
+        run_parallel(s, f, f + n)
     else:
-        run_serial(s, f, f + 1)
+        run_serial(s, f, f + n)
     zero_step(s, a, f)
     a.adj_F_pc.fill(0.0)
     a.fault[None] = -1
-    src = (f + 1) % 2
+    src = (f + n) % 2
     for name in PARTICLE_FIELDS:
         up = np.zeros((2,) + w.np[name].shape)
         up[src] = w.np[name]
         up[src, list(upstream_nan)] = np.nan
         getattr(a, "adj_" + name).from_numpy(up)
     if s.lanes:
-        substep_reverse(s, a, f)
+        run_parallel_reverse(s, a, f, f + n)
     else:
-        run_serial_reverse(s, a, f, f + 1)
+        run_serial_reverse(s, a, f, f + n)
     return tape
 
 
 @pytest.mark.parametrize("schedule", ["parallel", "serial"])
-@pytest.mark.parametrize("f", [CONTROL_STEP, PLAIN_STEP])
-def test_step_reverse_matches_tape(step_pairs, schedule, f):
-    """One reverse step of the production driver vs Tape on p2g, grid_op, g2p of that step: rel err <= 1e-8.
+@pytest.mark.parametrize("f, n", [(CONTROL_STEP, 1), (PLAIN_STEP, 1), (PLAIN_STEP, 2)])
+def test_step_reverse_matches_tape(step_pairs, schedule, f, n):
+    """A reverse pass of the production driver over steps f..f+n-1 vs Tape on p2g, grid_op, g2p of those steps:
+    rel err <= 1e-8.
 
-    parallel: substep_reverse (step_loops_reverse: g2p_particle_reverse into LANES private grids, summed by
-    gather_lanes_reverse in grid_node_reverse, then p2g_particle_reverse and check_particle_reverse);
-    serial: run_serial_reverse over [f, f + 1). dL/d(x, v, C, F)^f and dL/dF_pc (eq 47-71); afterwards the
-    consumed adjoints of step f + 1, dL/dv_i and the private grids are zero, and no fault is recorded.
+    parallel: run_parallel_reverse (recompute_velocity, then per step substep_reverse, step_loops_reverse:
+    g2p_particle_reverse into LANES private grids, summed by gather_lanes_reverse in grid_node_reverse, then
+    p2g_particle_reverse and check_particle_reverse); serial: run_serial_reverse over [f, f + n).
+    dL/d(x, v, C, F)^f and dL/dF_pc (eq 47-71); afterwards the consumed adjoints of step f + 1, dL/dv_i and the
+    private grids are zero, and no fault is recorded. n = 2 also crosses the control step 2 (stride 2).
     """
     pair = step_pairs[schedule]
-    rng = np.random.default_rng(300 + f)
+    rng = np.random.default_rng(300 + f + 10 * (n - 1))
     pair.randomize(rng)
     w = pair.upstream.draw(rng, list(PARTICLE_FIELDS))
-    tape = run_step_pair(pair, f, w)
+    tape = run_step_pair(pair, f, w, n=n)
     a, dst = pair.a, f % 2
     for name in PARTICLE_FIELDS:
         got = getattr(a, "adj_" + name).to_numpy()
         assert rel_err(got[dst], tape[name]) <= TOL, name
         assert np.all(got[1 - dst] == 0.0), name  # consumed and zeroed
     assert rel_err(a.adj_F_pc.to_numpy(), tape["F_pc"]) <= TOL
-    assert (f % pair.cfg.stride == 0) == np.any(tape["F_pc"] != 0.0)
+    acts = any(g % pair.cfg.stride == 0 for g in range(f, f + n))
+    assert acts == np.any(tape["F_pc"] != 0.0)
     assert np.all(a.adj_grid_v.to_numpy() == 0.0)
     if pair.s.lanes:
         assert np.all(a.lane_adj_v.to_numpy() == 0.0)

@@ -104,7 +104,7 @@ def test_tape_estimate_matches_the_tape_fields(name):
 
 @pytest.mark.parametrize("cfg, n, grids, names, lower", [
     (config(n_grid=4096, steps=200, stride=10, dt=1e-5), 1000, [],
-     r"the grid states \(m, p, v\) of 200 steps on the 4096\^2 grid",
+     r"the grid states \(m, p\) of 200 steps on the 4096\^2 grid",
      "sim.n_grid or sim.steps"),
     (config(steps=200, stride=10), 1000, [(20000, 1, False)], r"the loss grids loss.grids = \[20000\]", "loss.grids"),
     (config(n_grid=64, steps=2000, stride=10), 10 ** 6, [(64, 1, True)],
