@@ -8,7 +8,7 @@ next reverse step's G2P (eq 17 and the walls, by the forward's own grid_op_node:
 """
 import taichi as ti
 
-from mls_mpm.grid import grid_op_node
+from mls_mpm.grid import grid_op, grid_op_node
 
 from .grid import grid_op_node_reverse
 from .state import zero_particle
@@ -75,16 +75,10 @@ def substep_reverse(s: ti.template(), a: ti.template(), f: ti.i32, f0: ti.i32):
     step_loops_reverse(s, a, f, f0)
 
 
-@ti.kernel
-def recompute_velocity(s: ti.template(), f: ti.i32):
-    """v_i of step f (velocity_loop) in a launch of its own: before the first substep_reverse of a pass."""
-    velocity_loop(s, f)
-
-
 def run_parallel_reverse(s, a, f0, f1):
     """Reverse steps f1-1 down to f0, one launch each (twin of mls_mpm.step.run_parallel)."""
     if not s.every_velocity:
-        recompute_velocity(s, f1 - 1)
+        grid_op(s, f1 - 1)  # v_i of the pass's last step into the one slot (velocity_loop in a launch of its own)
     for f in range(f1 - 1, f0 - 1, -1):
         substep_reverse(s, a, f, f0)
 

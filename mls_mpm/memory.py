@@ -51,8 +51,7 @@ def parts(cfg, n_particles, grids=(), position_loss=False, tape=False):
         Part(f"the particle states (x, v, C, F) of {T + 1} steps x {N} particles",
              "sim.steps or sim.particles_per_cell",
              copies * (T + 1) * N * state * w),
-        Part(f"the grid states (m, p) of {T} steps on the {n}{sq} grid" if not tape else
-             f"the grid states (m, p, v) of {T} steps on the {n}{sq} grid",
+        Part(f"the grid states ({'m, p, v' if tape else 'm, p'}) of {T} steps on the {n}{sq} grid",
              "sim.n_grid (in 3D the grid grows as n_grid^3 per stored step) or sim.steps" if d == 3 else
              "sim.n_grid or sim.steps",
              # + (without the Tape) the one velocity slot and the adjoint's grid

@@ -8,6 +8,7 @@ import pytest
 
 import mls_mpm
 from mls_mpm import runtime
+from mls_mpm.grid import grid_op
 
 
 @pytest.fixture(scope="session", autouse=True)
@@ -132,6 +133,5 @@ class StopAt:
 def grid_velocity(sim, f):
     """Grid velocity v_i of step f of sim's last forward pass: recomputed from its stored m_i, p_i by the forward's
     own grid_op (eq 17, gravity, walls), since a Simulator keeps v_i in one slot that each step overwrites."""
-    from mls_mpm.grid import grid_op
     grid_op(sim.fields, f)
     return sim.fields.grid_v.to_numpy()[0]

@@ -410,7 +410,7 @@ def test_step_reverse_matches_tape(step_pairs, schedule, f, n):
     """A reverse pass of the production driver over steps f..f+n-1 vs Tape on p2g, grid_op, g2p of those steps:
     rel err <= 1e-8.
 
-    parallel: run_parallel_reverse (recompute_velocity, then per step substep_reverse, step_loops_reverse:
+    parallel: run_parallel_reverse (grid_op for v_i of step f + n - 1, then per step substep_reverse, step_loops_reverse:
     g2p_particle_reverse into LANES private grids, summed by gather_lanes_reverse in grid_node_reverse, then
     p2g_particle_reverse and check_particle_reverse); serial: run_serial_reverse over [f, f + n).
     dL/d(x, v, C, F)^f and dL/dF_pc (eq 47-71); afterwards the consumed adjoints of step f + 1, dL/dv_i and the
