@@ -40,8 +40,10 @@ def bench_scaling(quick=False, emit=print, plot_path="scaling.png"):
             emit(f"| {key} | {v} | {man['forward_ms']:.3f} | {man['backward_ms']:.3f} | {tape['tape_ms']:.3f} | "
                  f"{man['peak_mib']:.0f} | {tape['peak_mib']:.0f} | {est:.0f} |")
     per = 12 * 4  # x, v, C, F: 12 f32 words per particle-step (memory.estimate_bytes)
+    node = 3 * 4  # m, p: 3 f32 words per grid node and stored step (memory.parts; v has one slot)
     emit(f"\nField memory grows linearly in particles x steps: {per} bytes per particle-step in f32 (twice that in "
-         f"f64), plus 20 bytes per grid node per step (64^2: 80 KiB per step). 24 GiB holds about "
+         f"f64), plus {node} bytes per grid node per step (64^2: {node * 64 * 64 // 1024} KiB per step). 24 GiB "
+         f"holds about "
          f"{24 * 2 ** 30 / per / 1e6:.0f} million particle-steps in f32, e.g. 64k particles x "
          f"{24 * 2 ** 30 / per / 65536:.0f} steps; Simulator refuses larger scenes up front (sim.max_memory_gb).")
     plot_scaling(results, plot_path)
