@@ -3,7 +3,8 @@ import taichi as ti
 
 from mls_mpm.config import STENCIL
 from mls_mpm.grid import velocity_slot
-from mls_mpm.kernels import along_slab, inside, join, node_weight, outer_slab, slab_offsets, stencil, weights
+from mls_mpm.kernels import (along_slab, inside, join, node_N, outer_slab, slab_dN, slab_dN_add, slab_offsets, stencil,
+                             weights)
 from mls_mpm.material import polar_rotation, rotated_stress
 from mls_mpm.transfer import affine_momentum, control_sum
 
@@ -64,15 +65,16 @@ def g2p_slab_reverse(s: ti.template(), a: ti.template(), f, lane, base, fx, w, d
     of sum_i N v_i, added to adj_x, sum_v."""
     M = 3.0 * s.inv_dx * adj_C_new  # 3/dx^2 adj_C_new (x_i - x_p) = M (o - fx): kernels.along_slab
     a0 = adj_v_new - M @ (fx - 1.0) + (i0 - 1) * M[:, 0]  # at node (i0, 1, ..)
+    acc = ti.Vector.zero(float, s.dim)  # slab_dN_add's sums
     for o2 in ti.static(slab_offsets(s.dim)):
         o = join(i0, o2)
-        N, dN = node_weight(w, dw, i0, o2, s.inv_dx)
+        N = node_N(w, i0, o2)
         v_i = s.grid_v[velocity_slot(s, f), base + o]
         adj_v_i = along_slab(a0, M, o2)  # adj_v_new + 3/dx^2 adj_C_new (x_i - x_p)
         scatter_adj_node(s, a, lane, base + o, N * adj_v_i)
-        adj_x += dN * v_i.dot(adj_v_i)  # adj_C_new : v_i dpos^T = v_i . adj_C_new dpos
+        acc = slab_dN_add(acc, w, dw, o2, v_i.dot(adj_v_i))  # adj_C_new : v_i dpos^T = v_i . adj_C_new dpos
         sum_v += N * v_i
-    return adj_x, sum_v
+    return adj_x + slab_dN(acc, w, dw, i0, s.inv_dx), sum_v
 
 
 @ti.func
@@ -127,18 +129,19 @@ def p2g_slab_reverse(s: ti.template(), a: ti.template(), base, fx, w, dw, G, mv,
     Gdx = G * s.dx
     a0 = mv - Gdx @ (fx - 1.0) + (i0 - 1) * Gdx[:, 0]
     slab = ti.Vector.zero(float, s.dim)
+    acc = ti.Vector.zero(float, s.dim)  # slab_dN_add's sums
     for o2 in ti.static(slab_offsets(s.dim)):
         o = join(i0, o2)
-        N, dN = node_weight(w, dw, i0, o2, s.inv_dx)
+        N = node_N(w, i0, o2)
         adj_m_i = a.adj_grid_m[base + o]
         adj_p_i = a.adj_grid_p[base + o]
-        adj_x += dN * (s.m_p * adj_m_i + adj_p_i.dot(along_slab(a0, Gdx, o2)))
+        acc = slab_dN_add(acc, w, dw, o2, s.m_p * adj_m_i + adj_p_i.dot(along_slab(a0, Gdx, o2)))
         Np = N * adj_p_i
         slab += Np
         Q = outer_slab(Q, Np, o2)
     for r in ti.static(range(s.dim)):
         Q[r, 0] += (i0 - 1) * slab[r]
-    return adj_x, sum_adj_p + slab, Q
+    return adj_x + slab_dN(acc, w, dw, i0, s.inv_dx), sum_adj_p + slab, Q
 
 
 @ti.func

@@ -154,6 +154,31 @@ def node_weight(w, dw, i0, o2: ti.template(), inv_dx):
 
 
 @ti.func
+def slab_dN_add(acc, w, dw, o2: ti.template(), c):
+    """acc + c (prod_d w[o2[d], d + 1], and for each axis e >= 1 that product with dw in place of w on axis e):
+    node (i0, o2)'s term of slab i0's sum of dN c, without its axis-0 factor (slab_dN ends the slab).
+
+    sum_i dN_i c_i over a slab (eq 2: dN = inv_dx (dw0 w1 w2, w0 dw1 w2, w0 w1 dw2) in 3D) has the axis-0 factor
+    dw0 or w0 in common: a node costs dim multiply-adds here instead of the dim^2 products of node_weight's dN.
+    """
+    dim = ti.static(len(o2) + 1)
+    for e in ti.static(range(dim)):
+        g = c
+        for d in ti.static(range(1, dim)):
+            g *= dw[o2[d - 1], d] if ti.static(d == e) else w[o2[d - 1], d]
+        acc[e] += g
+    return acc
+
+
+@ti.func
+def slab_dN(acc, w, dw, i0, inv_dx):
+    """sum_i dN_i c_i over slab i0 from slab_dN_add's sums acc: axis 0 times dw[i0, 0], the others times w[i0, 0]."""
+    r = acc * axis0(w, i0)
+    r[0] = acc[0] * axis0(dw, i0)
+    return r * inv_dx
+
+
+@ti.func
 def inside(base, n) -> ti.i32:
     """Whether the whole 4^dim stencil from base lies on the grid of n nodes per axis."""
     ok = 1
