@@ -63,6 +63,8 @@ NO_TWIN = {
         "polar_rotation": "differentiated in closed form by adjoint.material.rotation_adjoint (2D dR/dtheta, 3D R [omega])",
         "svd_rotation": "polar_rotation's starting guess: its Newton steps make dR independent of it",
         "higham_rotation": "polar_rotation's other starting guess: its Newton step makes dR independent of it",
+        "higham_step": "one step of higham_rotation (a starting guess: no derivative needed)",
+        "higham_steps": "an integer step count for higham_rotation: nothing to differentiate",
         "newton_rotation": "polar_rotation's Newton step: rotation_adjoint differentiates the converged R",
         "jacobi_rotate": "part of svd_rotation's starting guess (no derivative needed)",
         "sort_columns": "part of svd_rotation's starting guess (no derivative needed)",

@@ -12,7 +12,7 @@ import pytest
 import taichi as ti
 
 from conftest import rel_err
-from mls_mpm.material import HIGHAM_Q, polar_rotation, stress
+from mls_mpm.material import HIGHAM_Q, HIGHAM_TIERS, polar_rotation, stress
 from test_adjoint_kernels import stress_adjoint, stress_functional  # dimension-generic (template fields)
 
 pytestmark = pytest.mark.usefixtures("taichi_f64_module")
@@ -35,7 +35,7 @@ R0, R1 = rot([1, 2, 3], 0.7), rot([-2, 1, 0.5], 2.1)
 
 def at_q(q):
     """The singular value a with J / (|F|_F^2 / 3)^(3/2) = q for F = R diag(a, 0.9, 1.2) R' (bisection: the ratio
-    grows with a on [0, 0.9])."""
+    grows with a on [0, 0.9], up to 0.94)."""
     lo, hi = 0.0, 0.9
     for _ in range(200):
         a = 0.5 * (lo + hi)
@@ -55,6 +55,9 @@ SMOOTH = {  # no repeated singular value
     # either side of the line between polar_rotation's two starting guesses (Higham's iteration / the SVD)
     "just above HIGHAM_Q": R0 @ np.diag([at_q(1.02 * HIGHAM_Q), 0.9, 1.2]) @ R1,
     "just below HIGHAM_Q": R0 @ np.diag([at_q(0.98 * HIGHAM_Q), 0.9, 1.2]) @ R1,
+    # and either side of each line between Higham step counts (HIGHAM_TIERS)
+    **{f"just {side} q = {q}": R0 @ np.diag([at_q(k * q), 0.9, 1.2]) @ R1
+       for q, _ in HIGHAM_TIERS for side, k in (("above", 1.02), ("below", 0.98))},
 }
 DIAGONAL_REPEATED = {  # repeated singular values but F^T F diagonal: Jacobi has nothing to rotate
     "identity": np.eye(3),
