@@ -185,6 +185,7 @@ def higham_rotation(F, steps):
 
 @ti.func
 def higham_step(X, scaled):
+    """One step of higham_rotation: (z X + cof(X) / (z det X)) / 2, z = |det X|^(-1/3) if scaled, else 1."""
     cX = cofactor(X)
     d = X[:, 0].dot(cX[:, 0])  # det X: stays > 0 (each iterate is F's polar factor times an SPD matrix)
     z = 1.0 + 0.0 * d
