@@ -105,8 +105,7 @@ class State:
         self.every_velocity = g or every_velocity
         self.grid_v = ti.Vector.field(d, dt_, shape=((T if self.every_velocity else 1),) + grid, needs_grad=g)
         if lanes:
-            self.lane_m = ti.field(dt_, shape=(lanes,) + grid)  # private node mass of one thread
-            self.lane_p = ti.Vector.field(d, dt_, shape=(lanes,) + grid)  # private node momentum of one thread
+            self.lane_mp = ti.Vector.field(d + 1, dt_, shape=(lanes,) + grid)  # private node (p, m) of one thread
             self.G_step = ti.Matrix.field(d, d, dt_, shape=N)  # G_p of the step being scattered (step.step_loops)
         self.loss = ti.field(dt_, shape=(), needs_grad=g)
         self.fault = ti.field(ti.i64, shape=2)  # least faulty f * N + p per FAULT_* kind

@@ -31,10 +31,11 @@ def gather_lanes(s: ti.template(), f, I):
     m = 0.0
     mom = ti.Vector.zero(float, s.dim)
     for lane in ti.static(range(s.lanes)):
-        m += s.lane_m[lane, I]
-        mom += s.lane_p[lane, I]
-        s.lane_m[lane, I] = 0.0
-        s.lane_p[lane, I] = ti.Vector.zero(float, s.dim)
+        q = s.lane_mp[lane, I]
+        m += q[s.dim]
+        for d in ti.static(range(s.dim)):
+            mom[d] += q[d]
+        s.lane_mp[lane, I] = ti.Vector.zero(float, s.dim + 1)
     s.grid_m[f, I] = m
     s.grid_p[f, I] = mom
 
