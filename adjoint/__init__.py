@@ -65,6 +65,7 @@ NO_TWIN = {
         "higham_rotation": "polar_rotation's other starting guess: its Newton step makes dR independent of it",
         "higham_step": "one step of higham_rotation (a starting guess: no derivative needed)",
         "higham_steps": "an integer step count for higham_rotation: nothing to differentiate",
+        "higham_fewer": "a compile-time step count by float type (Python): nothing to differentiate",
         "newton_rotation": "polar_rotation's Newton step: rotation_adjoint differentiates the converged R",
         "jacobi_rotate": "part of svd_rotation's starting guess (no derivative needed)",
         "sort_columns": "part of svd_rotation's starting guess (no derivative needed)",

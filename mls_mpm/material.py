@@ -9,6 +9,7 @@ loop has a fixed trip count, so ti.ad.Tape differentiates it (Taichi's ti.svd ca
 uses bit casts).
 """
 import taichi as ti
+from taichi.lang import impl
 
 
 # 3x3 products written as expressions: Taichi's `@` accumulates into local variables, which ti.ad.Tape turns
@@ -72,6 +73,17 @@ HIGHAM_STEPS = 6
 # benchmarks/polar_accuracy.py measures the Taichi code's.
 HIGHAM_TIERS = ((0.9, 4), (0.3, 5))
 HIGHAM_MIN_STEPS = min(n for _, n in HIGHAM_TIERS)
+# In float32 the start needs float32 round-off only (~1e-7): one Higham step fewer in every band. Measured (numpy,
+# 400k random F, the iteration in float32): the largest |X - R| of the start after HIGHAM_TIERS' counts minus one is
+# 1.5e-7, 1.5e-7 and 4.6e-7 by band, as with the float64 counts; two fewer leave 7e-4 (polar_accuracy.py measures
+# the Taichi code's, tests/test_polar_f32.py checks it).
+HIGHAM_F32_FEWER = 1
+
+
+def higham_fewer():
+    """The Higham steps fewer than HIGHAM_TIERS and HIGHAM_STEPS say, for the running Taichi's float type (fixed at
+    compile time: call it inside ti.static)."""
+    return HIGHAM_F32_FEWER if impl.current_cfg().default_fp == ti.f32 else 0
 
 
 @ti.func
@@ -172,11 +184,11 @@ def svd_rotation(F):
 @ti.func
 def higham_rotation(F, steps):
     """The orthogonal polar factor of F (J > 0, so a rotation) by Higham's scaled Newton iteration (Higham 1986),
-    X <- (z X + X^{-T} / z) / 2 with z = |det X|^(-1/3) (z = 1 in the last step), `steps` (<= HIGHAM_STEPS) times
-    from X = F; X^{-T} = cof(X) / det X."""
+    X <- (z X + X^{-T} / z) / 2 with z = |det X|^(-1/3) (z = 1 in the last step), `steps` (<= HIGHAM_STEPS, less
+    higham_fewer) times from X = F; X^{-T} = cof(X) / det X."""
     X = F
-    for k in ti.static(range(HIGHAM_STEPS)):
-        if ti.static(k < HIGHAM_MIN_STEPS - 1):  # a scaled step in every tier
+    for k in ti.static(range(HIGHAM_STEPS - higham_fewer())):
+        if ti.static(k < HIGHAM_MIN_STEPS - higham_fewer() - 1):  # a scaled step in every tier
             X = higham_step(X, True)
         elif k < steps:
             X = higham_step(X, k < steps - 1)
@@ -196,10 +208,12 @@ def higham_step(X, scaled):
 
 @ti.func
 def higham_steps(q):
-    """Higham steps for a start at round-off, given q = J / (|F|_F^2 / 3)^(3/2) > HIGHAM_Q (HIGHAM_TIERS)."""
-    n = HIGHAM_STEPS
+    """Higham steps for a start at round-off, given q = J / (|F|_F^2 / 3)^(3/2) > HIGHAM_Q (HIGHAM_TIERS; one
+    fewer in float32, higham_fewer)."""
+    fewer = ti.static(higham_fewer())
+    n = HIGHAM_STEPS - fewer
     for t in ti.static(HIGHAM_TIERS[::-1]):
-        n = ti.select(q > t[0], t[1], n)
+        n = ti.select(q > t[0], t[1] - fewer, n)
     return n
 
 
