@@ -189,7 +189,7 @@ def test_g2p_reverse_matches_tape(pair, f, which):
     tape = tape_grads(t, ("x", "F", "grid_v", "v", "C"), f)
     tape_F_pc = t.F_pc.grad.to_numpy()
 
-    g2p(s, f)  # the reverse kernel reads C^{f+1} (eq 57)
+    g2p(s, f)  # the reverse kernel reads C^{f+1} (eq 57) and v^{f+1} (sum_i N v_i, eq 18)
     src, dst = (f + 1) % 2, f % 2
     d = pair.d
     b = pair.prefill(rng, ("adj_x", "adj_v", "adj_C", "adj_F", "adj_grid_v"),
