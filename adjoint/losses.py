@@ -2,7 +2,7 @@
 import taichi as ti
 
 from mls_mpm.config import STENCIL
-from mls_mpm.kernels import join, node_weight, on_grid, slab_offsets, stencil, weights
+from mls_mpm.kernels import join, on_grid, slab_dN, slab_dN_add, slab_offsets, stencil, weights
 from mls_mpm.losses import OT_KINDS, node_penalty, node_residual, splat_value
 
 from .state import zero_step
@@ -39,25 +39,29 @@ def splat_reverse(s: ti.template(), g: ti.template(), a: ti.template(), f: ti.i3
         else:
             for i0 in range(STENCIL):
                 adj_x = splat_slab_gather(g, base, w, dw, value, i0, adj_x)
-        a.adj_x[f % 2, p] += adj_x
+        # a plain read-add-write: `+=` on a field compiles to an atomic add in a parallel loop (adjoint.transfer)
+        a.adj_x[f % 2, p] = a.adj_x[f % 2, p] + adj_x
 
 
 @ti.func
 def splat_slab_gather(g: ti.template(), base, w, dw, value, i0, adj_x):
-    """Slab i0 of splat_reverse: sum over its nodes on the loss grid of dN/dx_p (value_p . dL/dm_i), added to adj_x."""
+    """Slab i0 of splat_reverse: sum over its nodes on the loss grid of dN/dx_p (value_p . dL/dm_i), added to adj_x
+    (kernels.slab_dN_add: the slab's axis-0 factor taken out; a node off the grid adds nothing)."""
+    acc = ti.Vector.zero(float, base.n)
     for o2 in ti.static(slab_offsets(base.n)):
         I = base + join(i0, o2)
+        c = 0.0
         if on_grid(I, g.m):
-            _, dN = node_weight(w, dw, i0, o2, g.inv_dx)
-            adj_x += dN * value.dot(g.adj_m[I])
-    return adj_x
+            c = value.dot(g.adj_m[I])
+        acc = slab_dN_add(acc, w, dw, o2, c)
+    return adj_x + slab_dN(acc, w, dw, i0, g.inv_dx)
 
 
 @ti.kernel
 def position_loss_reverse(s: ti.template(), a: ti.template(), f: ti.i32):
     """dL/dx_p += x_p - x_pu (eq 10)."""
     for p in range(s.n_particles):
-        a.adj_x[f % 2, p] += s.x[f, p] - s.target_x[p]
+        a.adj_x[f % 2, p] = a.adj_x[f % 2, p] + s.x[f, p] - s.target_x[p]
 
 
 def evaluate_reverse(s, a, f):

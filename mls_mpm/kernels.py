@@ -141,25 +141,12 @@ def node_N(w, i0, o2: ti.template()):
 
 
 @ti.func
-def node_weight(w, dw, i0, o2: ti.template(), inv_dx):
-    """N(x_i - x_p) for node base + (i0, o2), and its gradient with respect to x_p (eq 2)."""
-    dim = ti.static(len(o2) + 1)
-    dN = ti.Vector.zero(float, dim)
-    for e in ti.static(range(dim)):
-        g = axis0(dw, i0) if ti.static(e == 0) else axis0(w, i0)
-        for d in ti.static(range(1, dim)):
-            g *= dw[o2[d - 1], d] if ti.static(d == e) else w[o2[d - 1], d]
-        dN[e] = g
-    return node_N(w, i0, o2), dN * inv_dx
-
-
-@ti.func
 def slab_dN_add(acc, w, dw, o2: ti.template(), c):
     """acc + c (prod_d w[o2[d], d + 1], and for each axis e >= 1 that product with dw in place of w on axis e):
     node (i0, o2)'s term of slab i0's sum of dN c, without its axis-0 factor (slab_dN ends the slab).
 
     sum_i dN_i c_i over a slab (eq 2: dN = inv_dx (dw0 w1 w2, w0 dw1 w2, w0 w1 dw2) in 3D) has the axis-0 factor
-    dw0 or w0 in common: a node costs dim multiply-adds here instead of the dim^2 products of node_weight's dN.
+    dw0 or w0 in common: a node costs dim multiply-adds here instead of the dim^2 products of dN at every node.
     """
     dim = ti.static(len(o2) + 1)
     for e in ti.static(range(dim)):
