@@ -74,9 +74,10 @@ HIGHAM_STEPS = 6
 HIGHAM_TIERS = ((0.9, 4), (0.3, 5))
 HIGHAM_MIN_STEPS = min(n for _, n in HIGHAM_TIERS)
 # In float32 the start needs float32 round-off only (~1e-7): one Higham step fewer in every band. Measured (numpy,
-# 400k random F, the iteration in float32): the largest |X - R| of the start after HIGHAM_TIERS' counts minus one is
-# 1.5e-7, 1.5e-7 and 4.6e-7 by band, as with the float64 counts; two fewer leave 7e-4 (polar_accuracy.py measures
-# the Taichi code's, tests/test_polar_f32.py checks it).
+# 400k random F, the iteration and its Newton step in float32): the largest |R - U V^T| after HIGHAM_TIERS' counts
+# minus one is 1.5e-7, 1.5e-7 and 4.6e-7 by band, as with the float64 counts; two fewer leave 7e-4, which the
+# Newton step (it corrects a rotation, not X's symmetric part) keeps (polar_accuracy.py measures the Taichi code's,
+# tests/test_polar_f32.py checks it).
 HIGHAM_F32_FEWER = 1
 
 
