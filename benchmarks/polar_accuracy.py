@@ -22,24 +22,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 import taichi as ti  # noqa: E402
 
 from mls_mpm.bench.child import cpu_model  # noqa: E402
-from mls_mpm.bench.polar import PolarKernel, samples  # noqa: E402
-from mls_mpm import material  # noqa: E402
-from mls_mpm.material import HIGHAM_Q, HIGHAM_STEPS  # noqa: E402
-
-HIGHAM_TIERS = getattr(material, "HIGHAM_TIERS", ())  # none before 2026-12-03: HIGHAM_STEPS everywhere
-F32_FEWER = getattr(material, "HIGHAM_F32_FEWER", 0)  # none before 2026-12-03 (afternoon): f32 as f64
+from mls_mpm.bench.polar import PolarKernel, q_bands, samples  # noqa: E402
+from mls_mpm.material import HIGHAM_F32_FEWER  # noqa: E402
 
 
 def bands():
-    """(label, low, high) of q, highest first: the Higham tiers, then Higham's remaining band, then the SVD's."""
-    edges = [(f"q > {q} (Higham, {n} steps; f32 {n - F32_FEWER})", q) for q, n in HIGHAM_TIERS]
-    edges.append((f"q > {HIGHAM_Q} (Higham, {HIGHAM_STEPS} steps; f32 {HIGHAM_STEPS - F32_FEWER})", HIGHAM_Q))
-    out, hi = [], np.inf
-    for label, lo in edges:
-        out.append((label, lo, hi))
-        hi = lo
-    out.append((f"q <= {HIGHAM_Q}, inverted included (Jacobi SVD)", -np.inf, hi))
-    return out
+    """(label, low, high) of q, highest first (mls_mpm.bench.polar.q_bands)."""
+    return [(f"q > {lo} (Higham, {n} steps; f32 {n - HIGHAM_F32_FEWER})" if n else
+             f"q <= {hi}, inverted included (Jacobi SVD)", lo, hi) for lo, hi, n in q_bands()]
 
 
 def run(dtype, F, threads, groups):

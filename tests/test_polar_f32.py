@@ -2,7 +2,7 @@
 (material.HIGHAM_F32_FEWER): the rotation must stay at float32 round-off against U V^T of the sampled SVD.
 
 Random F = U diag(s) V^T with the singular values drawn so that every band of q = J / (|F|_F^2 / 3)^(3/2) gets F
-(HIGHAM_TIERS, HIGHAM_Q, and the Jacobi SVD's q <= HIGHAM_Q; mls_mpm.bench.polar's samples, as
+(mls_mpm.bench.polar's q_bands: the Higham tiers and the Jacobi SVD's q <= HIGHAM_Q; its samples, as
 benchmarks/polar_accuracy.py's). One kernel, compiled once in float32.
 """
 import numpy as np
@@ -10,8 +10,7 @@ import pytest
 
 import mls_mpm
 from mls_mpm import runtime
-from mls_mpm.bench.polar import PolarKernel, q_measure, samples
-from mls_mpm.material import HIGHAM_Q, HIGHAM_TIERS
+from mls_mpm.bench.polar import PolarKernel, q_bands, q_measure, samples
 
 COUNT = 20_000
 # float32 round-off of R (~6e-8 an entry) times the few operations of the last Newton step; measured: <= 2.5e-7 in the
@@ -41,20 +40,11 @@ def rotations():
     return q_measure(F64), R, u @ vt
 
 
-def bands():
-    edges = [q for q, _ in HIGHAM_TIERS] + [HIGHAM_Q]
-    out, hi = [], np.inf
-    for lo in edges:
-        out.append((lo, hi))
-        hi = lo
-    return out
-
-
-@pytest.mark.parametrize("band", range(len(HIGHAM_TIERS) + 1))
+@pytest.mark.parametrize("band", range(len(q_bands()) - 1))
 def test_higham_bands_reach_f32_round_off(rotations, band):
     """Each Higham band (one step fewer in float32): |R - U V^T| <= F32_TOL, R a rotation to round-off."""
     q, R, ref = rotations
-    lo, hi = bands()[band]
+    lo, hi, _ = q_bands()[band]
     idx = (q > lo) & (q <= hi)
     assert idx.sum() > 500, f"band q in ({lo}, {hi}]: too few samples"
     err = np.abs(R[idx] - ref[idx]).max()
@@ -67,7 +57,8 @@ def test_svd_band_is_a_rotation(rotations):
     """The Jacobi SVD band (q <= HIGHAM_Q, inverted F included; unchanged by the float type): R is a proper rotation
     and near U V^T as far as F's conditioning allows."""
     q, R, ref = rotations
-    idx = q <= HIGHAM_Q
+    lo, hi, _ = q_bands()[-1]
+    idx = (q > lo) & (q <= hi)
     assert idx.sum() > 500
     assert np.abs(R[idx].transpose(0, 2, 1) @ R[idx] - np.eye(3)).max() <= F32_TOL
     assert np.all(np.linalg.det(R[idx]) > 0.99)

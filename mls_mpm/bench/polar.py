@@ -5,7 +5,7 @@ import time
 import numpy as np
 import taichi as ti
 
-from ..material import polar_rotation
+from ..material import HIGHAM_Q, HIGHAM_STEPS, HIGHAM_TIERS, polar_rotation
 
 
 def random_rotations(rng, n):
@@ -28,6 +28,17 @@ def samples(n, seed=0, spread=2.5):
     s[inverted, np.argmin(s, axis=1)[inverted]] *= -1.0
     F = U @ (s[:, :, None] * np.eye(3)) @ V.transpose(0, 2, 1)
     return F, U @ V.transpose(0, 2, 1), q_measure(F)
+
+
+def q_bands():
+    """The bands of q that pick polar_rotation's starting guess, highest first, as (low, high, float64 Higham steps):
+    the Higham tiers (HIGHAM_TIERS), Higham's remaining band above HIGHAM_Q (HIGHAM_STEPS), and last the Jacobi
+    SVD's band (steps None). A band holds low < q <= high."""
+    out, hi = [], np.inf
+    for lo, steps in (*HIGHAM_TIERS, (HIGHAM_Q, HIGHAM_STEPS)):
+        out.append((lo, hi, steps))
+        hi = lo
+    return out + [(-np.inf, hi, None)]
 
 
 def q_measure(F):
