@@ -5,7 +5,7 @@ from mls_mpm.config import STENCIL
 from mls_mpm.kernels import join, on_grid, slab_dN, slab_dN_add, slab_offsets, stencil, weights
 from mls_mpm.losses import OT_KINDS, node_penalty, node_residual, splat_value
 
-from .state import zero_step
+from .state import add_own, zero_step
 
 
 @ti.kernel
@@ -39,8 +39,7 @@ def splat_reverse(s: ti.template(), g: ti.template(), a: ti.template(), f: ti.i3
         else:
             for i0 in range(STENCIL):
                 adj_x = splat_slab_gather(g, base, w, dw, value, i0, adj_x)
-        # a plain read-add-write: `+=` on a field compiles to an atomic add in a parallel loop (adjoint.transfer)
-        a.adj_x[f % 2, p] = a.adj_x[f % 2, p] + adj_x
+        add_own(a.adj_x, f % 2, p, adj_x)  # particle p's own entry: state.add_own, not an atomic add
 
 
 @ti.func
@@ -61,7 +60,7 @@ def splat_slab_gather(g: ti.template(), base, w, dw, value, i0, adj_x):
 def position_loss_reverse(s: ti.template(), a: ti.template(), f: ti.i32):
     """dL/dx_p += x_p - x_pu (eq 10)."""
     for p in range(s.n_particles):
-        a.adj_x[f % 2, p] = a.adj_x[f % 2, p] + s.x[f, p] - s.target_x[p]
+        add_own(a.adj_x, f % 2, p, s.x[f, p] - s.target_x[p])
 
 
 def evaluate_reverse(s, a, f):

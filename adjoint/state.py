@@ -23,6 +23,14 @@ class AdjointState:
 
 
 @ti.func
+def add_own(field: ti.template(), slot, i, value):
+    """field[slot, i] += value by a plain read-add-write, for an entry no other thread writes in the loop (particle
+    i's own adjoint; node i of this thread's private grid `slot`). `+=` on a field compiles to an atomic add in
+    every parallel loop, a compare-and-swap loop on a CPU: 25% of the reverse G2P at 2D f32 64^2 / 8k, 2 threads."""
+    field[slot, i] = field[slot, i] + value
+
+
+@ti.func
 def zero_particle(a: ti.template(), slot, p):
     d = ti.static(a.adj_x.n)
     a.adj_x[slot, p] = ti.Vector.zero(float, d)

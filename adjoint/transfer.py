@@ -9,13 +9,14 @@ from mls_mpm.material import polar_rotation, rotated_stress
 from mls_mpm.transfer import affine_momentum, control_sum
 
 from .material import rotated_stress_reverse
+from .state import add_own
 
 
 @ti.func
 def scatter_adj_node(s: ti.template(), a: ti.template(), lane, I, adj_v):
     """dL/dv_i += adj_v at node I, or into this thread's private grid `lane` (as mls_mpm.transfer.scatter_node)."""
     if ti.static(s.lanes > 0):
-        a.lane_adj_v[lane, I] = a.lane_adj_v[lane, I] + adj_v
+        add_own(a.lane_adj_v, lane, I, adj_v)
     else:
         a.adj_grid_v[I] += adj_v
 
@@ -53,11 +54,9 @@ def g2p_particle_reverse(s: ti.template(), a: ti.template(), f, p, lane):
             for i0 in range(STENCIL):
                 adj_x = g2p_slab_reverse(s, a, f, lane, base, fx, w, dw, adj_v_new, adj_C_new, i0, adj_x)
         adj_x -= k * adj_C_new.transpose() @ s.v[f + 1, p]  # v^{n+1} = sum_i N v_i (eq 18), stored by the forward
-        # particle p's own entries: a plain read-add-write (`+=` on a field compiles to an atomic add, a
-        # compare-and-swap loop on a CPU, in every parallel loop: 25% of this loop at 2D f32 64^2 / 8k, 2 threads)
         adj_F = (ti.Matrix.identity(float, s.dim) + s.dt * s.C[f + 1, p]).transpose() @ adj_F_next
-        a.adj_x[dst, p] = a.adj_x[dst, p] + adj_x
-        a.adj_F[dst, p] = a.adj_F[dst, p] + adj_F
+        add_own(a.adj_x, dst, p, adj_x)  # particle p's own entries: state.add_own, not atomic adds
+        add_own(a.adj_F, dst, p, adj_F)
 
 
 @ti.func
@@ -113,13 +112,12 @@ def p2g_particle_reverse(s: ti.template(), a: ti.template(), f, p):
         adj_v = drag * sum_adj_p
         adj_A = -3.0 * s.inv_dx * s.inv_dx * s.dt * s.vol * adj_G
         adj_Fs = adj_A.transpose() @ P + rotated_stress_reverse(Fs, R, adj_A @ Fs, s.mu, s.lam)
-        # particle p's own entries: plain read-add-writes, not atomic adds (as in g2p_particle_reverse)
-        a.adj_x[dst, p] = a.adj_x[dst, p] + adj_x
-        a.adj_v[dst, p] = a.adj_v[dst, p] + adj_v
-        a.adj_C[dst, p] = a.adj_C[dst, p] + s.m_p * adj_G
-        a.adj_F[dst, p] = a.adj_F[dst, p] + adj_Fs
+        add_own(a.adj_x, dst, p, adj_x)  # particle p's own entries: state.add_own, not atomic adds
+        add_own(a.adj_v, dst, p, adj_v)
+        add_own(a.adj_C, dst, p, s.m_p * adj_G)
+        add_own(a.adj_F, dst, p, adj_Fs)
         if f % s.stride == 0:
-            a.adj_F_pc[f // s.stride, p] = a.adj_F_pc[f // s.stride, p] + a.adj_F[dst, p]
+            add_own(a.adj_F_pc, f // s.stride, p, a.adj_F[dst, p])
 
 
 @ti.func
