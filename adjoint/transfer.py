@@ -3,8 +3,8 @@ import taichi as ti
 
 from mls_mpm.config import STENCIL
 from mls_mpm.grid import velocity_slot
-from mls_mpm.kernels import (along_slab, inside, join, node_N, outer_slab, slab_dN, slab_dN_add, slab_offsets, stencil,
-                             weights)
+from mls_mpm.kernels import (along_slab, inside, join, node_N, outer_row, outer_slab, row_offsets, slab_dN, slab_dN_add,
+                             slab_offsets, stencil, weights)
 from mls_mpm.material import polar_rotation, rotated_stress
 from mls_mpm.transfer import affine_momentum, control_sum
 
@@ -129,15 +129,20 @@ def p2g_slab_reverse(s: ti.template(), a: ti.template(), base, fx, w, dw, G, mv,
     a0 = mv - Gdx @ (fx - 1.0) + (i0 - 1) * Gdx[:, 0]
     slab = ti.Vector.zero(float, s.dim)
     acc = ti.Vector.zero(float, s.dim)  # slab_dN_add's sums
-    for o2 in ti.static(slab_offsets(s.dim)):
-        o = join(i0, o2)
-        N = node_N(w, i0, o2)
-        adj_m_i = a.adj_grid_m[base + o]
-        adj_p_i = a.adj_grid_p[base + o]
-        acc = slab_dN_add(acc, w, dw, o2, s.m_p * adj_m_i + adj_p_i.dot(along_slab(a0, Gdx, o2)))
-        Np = N * adj_p_i
-        slab += Np
-        Q = outer_slab(Q, Np, o2)
+    for o1 in ti.static(row_offsets(s.dim)):
+        row = ti.Vector.zero(float, s.dim)
+        for k in ti.static(range(STENCIL)):
+            o2 = ti.static(o1 + (k,))
+            o = join(i0, o2)
+            N = node_N(w, i0, o2)
+            adj_m_i = a.adj_grid_m[base + o]
+            adj_p_i = a.adj_grid_p[base + o]
+            acc = slab_dN_add(acc, w, dw, o2, s.m_p * adj_m_i + adj_p_i.dot(along_slab(a0, Gdx, o2)))
+            Np = N * adj_p_i
+            row += Np
+            Q = outer_row(Q, Np, k)
+        slab += row
+        Q = outer_slab(Q, row, o1)
     for r in ti.static(range(s.dim)):
         Q[r, 0] += (i0 - 1) * slab[r]
     return adj_x + slab_dN(acc, w, dw, i0, s.inv_dx), sum_adj_p + slab, Q

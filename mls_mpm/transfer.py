@@ -6,7 +6,8 @@ import taichi as ti
 
 from .config import STENCIL
 from .grid import velocity_slot
-from .kernels import along_slab, carry, inside, join, node_N, outer_slab, slab_offsets, stencil, weights
+from .kernels import (along_slab, carry, inside, join, node_N, outer_row, outer_slab, row_offsets, slab_offsets,
+                      stencil, weights)
 from .material import stress
 from .state import FAULT_LEFT_GRID, FAULT_NON_FINITE
 
@@ -130,10 +131,15 @@ def g2p_slab(s: ti.template(), f, base, w, i0, v_new, Q):
     """The gather of g2p_particle from slab i0 of the stencil: sum_i N v_i added to v_new (eq 18), and
     sum_i N v_i (o - 1)^T (o the node's offset in the stencil) to Q (eq 19's sum, see kernels.outer_slab)."""
     slab = ti.Vector.zero(float, s.dim)
-    for o2 in ti.static(slab_offsets(s.dim)):
-        Nv = node_N(w, i0, o2) * s.grid_v[velocity_slot(s, f), base + join(i0, o2)]
-        slab += Nv
-        Q = outer_slab(Q, Nv, o2)
+    for o1 in ti.static(row_offsets(s.dim)):  # rows along the last axis: kernels.row_offsets
+        row = ti.Vector.zero(float, s.dim)
+        for k in ti.static(range(STENCIL)):
+            o2 = ti.static(o1 + (k,))
+            Nv = node_N(w, i0, o2) * s.grid_v[velocity_slot(s, f), base + join(i0, o2)]
+            row += Nv
+            Q = outer_row(Q, Nv, k)
+        slab += row
+        Q = outer_slab(Q, row, o1)
     for r in ti.static(range(s.dim)):
         Q[r, 0] += (i0 - 1) * slab[r]
     return v_new + slab, Q
