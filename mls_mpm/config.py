@@ -31,6 +31,23 @@ def default_threads() -> int:
         return os.cpu_count() or 1
 
 
+COMPILE_VARIABLE = "MLS_MPM_COMPILE"
+COMPILE_MODES = ("optimized", "fast")
+
+
+def compile_mode() -> str:
+    """How Taichi compiles on the CPU, from the environment variable MLS_MPM_COMPILE: "optimized" (the default,
+    Taichi's own IR optimizations on) or "fast" (off; LLVM still optimizes). Measured on 2 cores (BENCHMARKS.md):
+    "fast" compiles a 3D simulator's kernels about 3.5x faster and a 2D one's 2-3x, runs them at 0.9-1.4x the
+    optimized time, and gives the same results to the bit; the test suite uses it (tests/conftest.py). GPUs and the
+    Tape oracle always get the optimizations (runtime.wants_optimized, TaichiRuntime.fits)."""
+    mode = os.environ.get(COMPILE_VARIABLE) or "optimized"
+    if mode not in COMPILE_MODES:
+        raise UserError(f"environment variable {COMPILE_VARIABLE} = {mode!r}: expected one of "
+                        f"{', '.join(COMPILE_MODES)}")
+    return mode
+
+
 def min_n_grid(bound: int) -> int:
     """The smallest grid for walls `bound` cells wide: the default region, (bound + 2) cells inside each edge,
     must hold 2 cells, which also leaves room for the 4-node stencil inside the walls."""

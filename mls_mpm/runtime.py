@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import taichi as ti
 from taichi.lang import impl
+from .config import compile_mode
 from .errors import UserError
 
 # what each sim.arch may run on, in the order tried
@@ -63,6 +64,13 @@ def _driver_present(backend: str) -> bool:
     return True
 
 
+def wants_optimized(backend: str, scalarized: bool) -> bool:
+    """Whether Taichi's IR optimizations (ti.init(advanced_optimization=...)) are on for this backend: on a GPU and
+    for the 3D Tape (scalarized: its reverse kernels crash at launch in Taichi 1.7.4 without them) always, on the
+    CPU unless config.compile_mode() is "fast"."""
+    return backend != "cpu" or scalarized or compile_mode() == "optimized"
+
+
 class StaleSimulatorError(RuntimeError):
     """A Simulator (or its fields) outlived the Taichi runtime it was built in."""
 
@@ -75,10 +83,11 @@ class Settings:
     dtype: str
     threads: int
     scalarized: bool = False  # ti.init(force_scalarize_matrix=True): what the 3D Tape oracle needs (ensure)
+    optimized: bool = True  # ti.init(advanced_optimization=...): off in compile_mode "fast"
 
     def __str__(self):
         return (f"{self.dtype} on {self.arch} with {self.threads} thread{'s' if self.threads != 1 else ''}"
-                + (", matrices scalarized" if self.scalarized else ""))
+                + (", matrices scalarized" if self.scalarized else "") + ("" if self.optimized else ", fast compile"))
 
 
 class TaichiRuntime:
@@ -100,7 +109,8 @@ class TaichiRuntime:
         if impl.get_runtime().prog is not self._prog:  # initialised outside ensure: read it, a new generation
             c = impl.current_cfg()
             self._started(Settings(running_arch(), "f64" if c.default_fp == ti.f64 else "f32",
-                                   int(c.cpu_max_num_threads), bool(c.force_scalarize_matrix)))
+                                   int(c.cpu_max_num_threads), bool(c.force_scalarize_matrix),
+                                   bool(c.advanced_optimization)))
         return self.settings
 
     def _started(self, settings):
@@ -108,23 +118,30 @@ class TaichiRuntime:
         self.settings = settings
         self._prog = impl.get_runtime().prog
 
-    def _fits(self, cfg, tape) -> bool:
+    def fits(self, cfg, tape=None) -> bool:
+        """Whether the running Taichi serves cfg (its dtype, arch and CPU threads) and `tape` (module ensure)."""
         cur = self.current()
-        if tape is None:
-            matrices_fit = True
+        if cur is None:
+            return False
+        if tape is None:  # a Simulator: matrices and optimizations either way
+            matrices_fit = optimization_fits = True
         elif tape:
-            matrices_fit = cur is not None and (cur.scalarized or not needs_scalarized(cfg, tape))
+            matrices_fit = cur.scalarized or not needs_scalarized(cfg, tape)
+            # Taichi 1.7.4's Tape kernels compiled without its IR optimizations gave a zero gradient in float32
+            # (found by trial; in float64 they match the manual kernels, which the suite checks)
+            optimization_fits = cur.optimized or cfg.dtype == "f64"
         else:
-            matrices_fit = cur is not None and not cur.scalarized
-        return (cur is not None and cur.dtype == cfg.dtype and cur.arch in BACKENDS[cfg.arch]
+            matrices_fit = not cur.scalarized
+            optimization_fits = cur.optimized == wants_optimized(cur.arch, cur.scalarized)
+        return (cur.dtype == cfg.dtype and cur.arch in BACKENDS[cfg.arch]
                 and (cur.arch != "cpu" or cur.threads == cfg.cpu_threads) and not impl.current_cfg().fast_math
-                and matrices_fit)
+                and matrices_fit and optimization_fits)
 
     def ensure(self, cfg, tape=None) -> int:
         """Initialise Taichi for cfg's arch, dtype and CPU threads, and for `tape` (see the module function
         ensure), re-initialising when any differs; return the generation. Raises ArchError when no backend that
         cfg.arch allows can start here."""
-        if self._fits(cfg, tape):
+        if self.fits(cfg, tape):
             return self.generation
         if impl.get_runtime().prog is not None:
             ti.reset()
@@ -138,10 +155,12 @@ class TaichiRuntime:
         for backend in allowed:
             if not _driver_present(backend):
                 continue
-            ti.init(arch=getattr(ti, backend), log_level=ti.ERROR, **kwargs)  # ERROR: no fallback warning
+            optimized = bool(tape) or wants_optimized(backend, scalarized)  # the Tape: always (fits)
+            # ERROR: no fallback warning
+            ti.init(arch=getattr(ti, backend), log_level=ti.ERROR, advanced_optimization=optimized, **kwargs)
             ti.set_logging_level(ti.WARN)
             if running_arch() == backend:
-                self._started(Settings(backend, cfg.dtype, threads, scalarized))
+                self._started(Settings(backend, cfg.dtype, threads, scalarized, optimized))
                 return self.generation
             ti.reset()  # Taichi fell back to the CPU
         self.settings = None
@@ -171,9 +190,10 @@ def needs_scalarized(cfg, tape) -> bool:
 def ensure(cfg, tape=None) -> int:
     """Initialise Taichi for cfg (RUNTIME.ensure); return the runtime's generation.
 
-    tape=True: fit for ti.ad.Tape on cfg's kernels (in 3D, matrices scalarized: needs_scalarized; in 2D either);
-    False: not scalarized (the production setting); None (Simulator, the CLI): either, so a Simulator can be built where
-    the Tape oracle runs. Re-initialising frees every field: simulators made under other settings refuse to run
-    afterwards.
+    tape=True: fit for ti.ad.Tape on cfg's kernels (in 3D, matrices scalarized: needs_scalarized; in 2D either;
+    Taichi's IR optimizations on when Taichi starts here, and kept on in float32: RUNTIME.fits); False: not
+    scalarized, optimized as compile_mode says (the production setting); None (Simulator, the CLI): either, so a
+    Simulator can be built where the Tape oracle runs. Re-initialising frees every field: simulators made under
+    other settings refuse to run afterwards.
     """
     return RUNTIME.ensure(cfg, tape)

@@ -239,16 +239,18 @@ class Simulator:
     def gradient_tape(self, controls, validation=False):
         """The same gradient as backward(), through ti.ad.Tape on the same forward kernels (a test oracle).
 
-        Allocates a second, grad-enabled copy of the fields on first call (refused first if it would not fit). In
-        3D, where Taichi was not initialised for the Tape (runtime.ensure(cfg, tape=True) before building this
-        Simulator), the Tape runs in a child process that is (its kernels compile there, about a minute each call).
+        Allocates a second, grad-enabled copy of the fields on first call (refused first if it would not fit). Where
+        the running Taichi does not fit the Tape (runtime.RUNTIME.fits: in 3D, not initialised with
+        runtime.ensure(cfg, tape=True) before building this Simulator; in float32, compiled with
+        MLS_MPM_COMPILE=fast), the Tape runs in a child process that does (its kernels compile there, about a
+        minute each call in 3D).
         """
         self._require_loss()
         controls = self._controls(controls)
         if self._tape_state is None:
             check_memory(self.cfg, self.n_particles, grids=loss_grid_shapes(self.loss),
                          position_loss=isinstance(self.loss, PositionLoss), tape=True)
-        if runtime.needs_scalarized(self.cfg, True) and not runtime.RUNTIME.settings.scalarized:
+        if not runtime.RUNTIME.fits(self.cfg, tape=True):  # re-initialising here would free this Simulator's fields
             return tape_gradients_in_child([(self.cfg, self.state(0), self.loss, controls)], validation)[0][1]
         _, grad, self._tape_state = tape_gradient(self.cfg, self.state(0), self.loss, controls, validation,
                                                   self._tape_state)

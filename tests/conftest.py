@@ -3,6 +3,8 @@
 Kernels compile once per distinct State (about a second each, ten for the reverse step), so tests build
 few simulators and share them through module-scoped fixtures.
 """
+import os
+
 import numpy as np
 import pytest
 
@@ -26,6 +28,11 @@ def taichi_f64_module():
     scalarized (the manual kernels then compile ~3x slower). A no-op when Taichi is already plain float64."""
     runtime.ensure(mls_mpm.SimConfig(dtype="f64", arch="cpu"), tape=False)
 
+
+# Taichi's IR optimizations off (mls_mpm.runtime.compile_mode) for this process and the CLIs and children it
+# starts: kernels compile 2-3.5x faster, with the same results to the bit (tests/test_runtime.py checks that against
+# the optimized build); `MLS_MPM_COMPILE=optimized pytest` runs the suite as production compiles
+os.environ.setdefault("MLS_MPM_COMPILE", "fast")
 
 TINY = 1e-30
 

@@ -171,7 +171,11 @@ def test_bench_output_under_a_file_refused(tmp_path, capsys, nothing_measured):
 
 
 def test_bench_gradient_writes_out_after_the_check(tmp_path, monkeypatch):
-    """A writable --out is accepted and the table lands there (children faked: nothing is timed)."""
+    """A writable --out is accepted and the table lands there (children faked: nothing is timed); its first line
+    says what the figures ran on, and that they were compiled fast where MLS_MPM_COMPILE says so."""
+    monkeypatch.setenv("MLS_MPM_COMPILE", "fast")
+    assert gradient.measured_on("cpu").startswith(f"Taichi CPU, 2 threads{gradient.FAST_COMPILE_NOTE}; CPU: ")
+    monkeypatch.setenv("MLS_MPM_COMPILE", "optimized")
     monkeypatch.setattr(gradient, "backend_here", lambda arch: "cpu")
     fake = {"manual": {"forward_ms": 1.0, "backward_ms": 1.2, "peak_mib": 100.0, "backend": "cpu"},
             "tape": {"tape_ms": 4.4, "peak_mib": 200.0, "backend": "cpu"}}
@@ -230,7 +234,9 @@ def test_against_head_measures_both_trees_alternately(temp_here):
 
     head = git("rev-parse", "--short", "HEAD").stdout.strip()
     cpu = f"CPU: {cpu_model()} ({os.cpu_count()} logical CPUs)"
-    assert lines[0].startswith(f"Taichi CPU, 2 threads; {cpu}; old: HEAD = {head}; new: the working tree at {head}")
+    note = gradient.FAST_COMPILE_NOTE if os.environ.get("MLS_MPM_COMPILE") == "fast" else ""  # conftest: fast
+    assert lines[0].startswith(f"Taichi CPU, 2 threads{note}; {cpu}; old: HEAD = {head}; "
+                               f"new: the working tree at {head}")
     assert lines[1].startswith("Each figure: the minimum over 2 runs of each, alternating old and new")
     assert [c.strip() for c in lines[3].strip("|").split("|")] == [
         "case", "old fwd ms/step", "new fwd ms/step", "fwd speed-up", "old bwd ms/step", "new bwd ms/step",

@@ -3,6 +3,9 @@
 one line instead of touching freed fields (a bare AssertionError before). Only cheap kernels run here
 (write_step, read_step): no step is compiled."""
 import os
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -48,11 +51,12 @@ def test_a_simulator_of_an_older_runtime_refuses_to_run():
     x0 = blob(n_grid=16, radius=0.2)
     sim = mls_mpm.Simulator(config(), x0, loss=mls_mpm.MassLoss([np.zeros((16, 16))]))
     threads = default_threads()
-    old = f"f64 on cpu with {threads} thread{'s' if threads != 1 else ''}"
+    mode = "" if RUNTIME.settings.optimized else ", fast compile"  # MLS_MPM_COMPILE (conftest: fast)
+    old = f"f64 on cpu with {threads} thread{'s' if threads != 1 else ''}{mode}"
     sim32 = mls_mpm.Simulator(config(dtype="f32"), x0)
     assert RUNTIME.settings.dtype == "f32"
     msg = (f"^this Simulator was built for {old}; Taichi has since been re-initialised for f32 on cpu with "
-           f"{threads} thread{'s' if threads != 1 else ''}, which freed its fields; build a new Simulator$")
+           f"{threads} thread{'s' if threads != 1 else ''}{mode}, which freed its fields; build a new Simulator$")
     calls = [lambda: sim.forward(sim.zero_controls()), lambda: sim.backward(), lambda: sim.grad_x0,
              lambda: sim.grad_v0, lambda: sim.state(0), lambda: sim.set_initial(x0),
              lambda: sim.evaluate_positions(x0), lambda: sim.gradient_tape(sim.zero_controls())]
@@ -72,7 +76,7 @@ def test_threads_that_differ_from_taichis_reinitialise():
     two = mls_mpm.Simulator(config(threads=2), blob(n_grid=16, radius=0.2))
     assert impl.current_cfg().cpu_max_num_threads == 2 and two.fields.lanes == 2
     with pytest.raises(StaleSimulatorError,
-                       match="built for f64 on cpu with 1 thread; .* for f64 on cpu with 2 threads"):
+                       match="built for f64 on cpu with 1 thread(, fast compile)?; .* for f64 on cpu with 2 threads"):
         sim.state(0)
 
 
@@ -102,3 +106,77 @@ def test_auto_schedule_choice(dim, n_grid, particles, threads, serial):
     assert cfg.serial(particles) is serial
     assert cfg.lanes(particles) == (0 if serial else threads)
     assert mls_mpm.SimConfig(dim=dim, n_grid=n_grid, threads=threads, schedule="parallel").serial(particles) is False
+
+
+MODES_SCRIPT = r"""
+import sys
+
+import numpy as np
+
+import mls_mpm
+from conftest import body, random_controls, scene_config
+from mls_mpm.runtime import RUNTIME
+
+out = {}
+for dim, dtype in ((2, "f64"), (3, "f64"), ("2 f32", "f32")):
+    cfg = scene_config(dim=int(str(dim)[0]), dtype=dtype)
+    dim, case = cfg.dim, dim
+    res = 16 if dim == 2 else 8
+    sim = mls_mpm.Simulator(cfg, body(dim), loss=mls_mpm.MassLoss([np.full((res,) * dim, 0.5 / res ** dim)]))
+    c = random_controls(sim.control_shape, 0.05, seed=3)
+    out[f"loss {case}"] = sim.forward(c)
+    out.update({f"{key} {case}": value for key, value in sim.state(cfg.steps).items()})
+    out[f"grad {case}"] = sim.backward()
+    out[f"grad_x0 {case}"] = sim.grad_x0
+    out[f"schedule {case}"] = "serial" if sim._serial else "parallel"
+    out[f"optimized {case}"] = RUNTIME.settings.optimized
+np.savez(sys.argv[1], **out)
+"""
+
+
+def test_fast_compile_gives_the_optimized_results_to_the_bit(tmp_path):
+    """MLS_MPM_COMPILE=fast (what this suite runs under, conftest) against the default, optimized build: the small
+    2D and 3D test scenes (the 2D one on the serial schedule, the 3D one on the parallel; float64, and the 2D one
+    in float32 too), run in two child processes side by side, give the same final state, loss, dL/dF_pc and dL/dx0
+    to the bit, so the suite's verdicts hold for what users run."""
+    script = tmp_path / "modes.py"
+    script.write_text(MODES_SCRIPT)
+    root = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(root), str(root / "tests")])}
+    children = {mode: subprocess.Popen([sys.executable, str(script), str(tmp_path / f"{mode}.npz")],
+                                       env={**env, "MLS_MPM_COMPILE": mode}, stderr=subprocess.PIPE, text=True)
+                for mode in ("optimized", "fast")}
+    for mode, child in children.items():
+        _, err = child.communicate(timeout=900)
+        assert child.returncode == 0, f"{mode}: {err[-2000:]}"
+    opt, fast = (np.load(tmp_path / f"{mode}.npz") for mode in ("optimized", "fast"))
+    assert all(opt[f"optimized {case}"] and not fast[f"optimized {case}"] for case in ("2", "3", "2 f32"))
+    assert (str(opt["schedule 2"]), str(opt["schedule 3"])) == ("serial", "parallel")
+    assert sorted(opt.files) == sorted(fast.files)
+    for key in opt.files:
+        if not key.startswith("optimized"):
+            assert np.array_equal(opt[key], fast[key]), f"{key}: differs between the compile modes"
+    assert np.all(np.isfinite(fast["grad 3"])) and np.any(fast["grad 3"] != 0.0)
+
+
+def test_an_unknown_compile_mode_is_refused_in_one_line(monkeypatch):
+    monkeypatch.setenv("MLS_MPM_COMPILE", "quick")
+    with pytest.raises(runtime.UserError,
+                       match="^environment variable MLS_MPM_COMPILE = 'quick': expected one of optimized, fast$"):
+        runtime.ensure(config(dtype="f32"))
+
+
+def test_a_float32_tape_is_right_whatever_the_compile_mode():
+    """Taichi 1.7.4's Tape compiled without its IR optimizations gives a zero gradient in float32, so on a runtime
+    compiled fast (this suite's) gradient_tape of a float32 Simulator runs in a child process that compiles it
+    optimized: the Simulator keeps its fields (no re-initialisation here) and the Tape matches backward()."""
+    x0 = blob(n_grid=16, radius=0.2)
+    sim = mls_mpm.Simulator(config(dtype="f32", steps=6, stride=3), x0, loss=mls_mpm.PositionLoss(x0 + 0.01))
+    generation = RUNTIME.generation
+    c = 0.05 * np.random.default_rng(0).standard_normal(sim.control_shape)
+    sim.forward(c)
+    g = sim.backward()
+    g_tape = sim.gradient_tape(c)
+    assert RUNTIME.generation == generation and RUNTIME.settings.dtype == "f32"
+    assert np.linalg.norm(g) > 0 and np.linalg.norm(g_tape - g) <= 1e-4 * np.linalg.norm(g)
+    assert np.array_equal(sim.backward(), g)  # the Simulator still runs

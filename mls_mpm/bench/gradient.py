@@ -9,8 +9,10 @@ import subprocess
 
 from .child import (CASES, THREADS, TINY_PARTICLES, TINY_STEPS, backend_here, case_label, case_steps, cpu_model,
                     run_child)
+from ..config import compile_mode
 from .output import writable_file
 
+FAST_COMPILE_NOTE = " (MLS_MPM_COMPILE=fast: Taichi's IR optimizations off, except for the 3D Tape)"
 MEMORY_CPU = (f"peak RSS of the path's process minus that of the same path at {TINY_PARTICLES} particles and "
               f"{TINY_STEPS} steps (Python, Taichi and the compiled kernels), i.e. the memory the data needs")
 
@@ -86,6 +88,8 @@ def measured_on(backend):
     """What the children ran on, said beside every figure: "Taichi CPU, 2 threads; CPU: model (n logical CPUs)",
     on a GPU "Taichi cuda (the GPU's name); CPU: ..."."""
     taichi = f"Taichi CPU, {THREADS} threads" if backend == "cpu" else f"Taichi {backend} ({_device_name(backend)})"
+    if backend == "cpu" and compile_mode() == "fast":
+        taichi += FAST_COMPILE_NOTE
     return f"{taichi}; CPU: {cpu_model()} ({os.cpu_count()} logical CPUs)"
 
 
