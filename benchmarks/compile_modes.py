@@ -20,7 +20,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from mls_mpm.bench.child import CASES, THREADS, cpu_model  # noqa: E402
+from mls_mpm.bench.child import CASES, THREADS, case_label, cpu_model  # noqa: E402
 
 MODES = ("optimized", "fast")
 CHILD = r"""
@@ -80,8 +80,7 @@ def main(argv=None):
             for mode in MODES:
                 runs[mode].append(measure(name, steps, mode))
         med = {mode: {k: statistics.median(r[k] for r in runs[mode]) for k in FIGURES} for mode in MODES}
-        c = CASES[name]
-        label = f"{c.get('dim', 2)}D {c['dtype']} {c['n_grid']}^{c.get('dim', 2)}, {c['particles']} particles"
+        label = case_label(CASES[name], steps)
         for mode in MODES:
             m = med[mode]
             print(f"| {label} | {mode} | {m['compile_forward_s']:.1f} | {m['compile_backward_s']:.1f} | "

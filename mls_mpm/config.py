@@ -39,8 +39,8 @@ def compile_mode() -> str:
     """How Taichi compiles on the CPU, from the environment variable MLS_MPM_COMPILE: "optimized" (the default,
     Taichi's own IR optimizations on) or "fast" (off; LLVM still optimizes). Measured on 2 cores (BENCHMARKS.md):
     "fast" compiles a 3D simulator's kernels about 3.5x faster and a 2D one's 2-3x, runs them at 0.9-1.4x the
-    optimized time, and gives the same results to the bit; the test suite uses it (tests/conftest.py). GPUs and the
-    Tape oracle always get the optimizations (runtime.wants_optimized, TaichiRuntime.fits)."""
+    optimized time, and gives the same results to the bit; the test suite uses it (tests/conftest.py). GPUs, and
+    Taichi started for the Tape oracle, always get the optimizations (runtime.wants_optimized, TaichiRuntime.fits)."""
     mode = os.environ.get(COMPILE_VARIABLE) or "optimized"
     if mode not in COMPILE_MODES:
         raise UserError(f"environment variable {COMPILE_VARIABLE} = {mode!r}: expected one of "

@@ -64,11 +64,12 @@ def _driver_present(backend: str) -> bool:
     return True
 
 
-def wants_optimized(backend: str, scalarized: bool) -> bool:
-    """Whether Taichi's IR optimizations (ti.init(advanced_optimization=...)) are on for this backend: on a GPU and
-    for the 3D Tape (scalarized: its reverse kernels crash at launch in Taichi 1.7.4 without them) always, on the
-    CPU unless config.compile_mode() is "fast"."""
-    return backend != "cpu" or scalarized or compile_mode() == "optimized"
+def wants_optimized(backend: str) -> bool:
+    """Whether a production runtime on this backend compiles with Taichi's IR optimizations
+    (ti.init(advanced_optimization=...)): on a GPU always, on the CPU unless config.compile_mode() is "fast". A
+    runtime started for the Tape always does (ensure): without them Taichi 1.7.4's 3D Tape kernels crash at launch
+    and its float32 Tape gives a zero gradient."""
+    return backend != "cpu" or compile_mode() == "optimized"
 
 
 class StaleSimulatorError(RuntimeError):
@@ -132,7 +133,7 @@ class TaichiRuntime:
             optimization_fits = cur.optimized or cfg.dtype == "f64"
         else:
             matrices_fit = not cur.scalarized
-            optimization_fits = cur.optimized == wants_optimized(cur.arch, cur.scalarized)
+            optimization_fits = cur.optimized == wants_optimized(cur.arch)
         return (cur.dtype == cfg.dtype and cur.arch in BACKENDS[cfg.arch]
                 and (cur.arch != "cpu" or cur.threads == cfg.cpu_threads) and not impl.current_cfg().fast_math
                 and matrices_fit and optimization_fits)
@@ -155,7 +156,7 @@ class TaichiRuntime:
         for backend in allowed:
             if not _driver_present(backend):
                 continue
-            optimized = bool(tape) or wants_optimized(backend, scalarized)  # the Tape: always (fits)
+            optimized = bool(tape) or wants_optimized(backend)  # the Tape: always (wants_optimized)
             # ERROR: no fallback warning
             ti.init(arch=getattr(ti, backend), log_level=ti.ERROR, advanced_optimization=optimized, **kwargs)
             ti.set_logging_level(ti.WARN)

@@ -118,9 +118,8 @@ from conftest import body, random_controls, scene_config
 from mls_mpm.runtime import RUNTIME
 
 out = {}
-for dim, dtype in ((2, "f64"), (3, "f64"), ("2 f32", "f32")):
-    cfg = scene_config(dim=int(str(dim)[0]), dtype=dtype)
-    dim, case = cfg.dim, dim
+for case, dim, dtype in (("2", 2, "f64"), ("3", 3, "f64"), ("2 f32", 2, "f32")):
+    cfg = scene_config(dim=dim, dtype=dtype)
     res = 16 if dim == 2 else 8
     sim = mls_mpm.Simulator(cfg, body(dim), loss=mls_mpm.MassLoss([np.full((res,) * dim, 0.5 / res ** dim)]))
     c = random_controls(sim.control_shape, 0.05, seed=3)

@@ -12,7 +12,7 @@ from .child import (CASES, THREADS, TINY_PARTICLES, TINY_STEPS, backend_here, ca
 from ..config import compile_mode
 from .output import writable_file
 
-FAST_COMPILE_NOTE = " (MLS_MPM_COMPILE=fast: Taichi's IR optimizations off, except for the 3D Tape)"
+FAST_COMPILE_NOTE = " (MLS_MPM_COMPILE=fast: Taichi's IR optimizations off, except for the Tape)"
 MEMORY_CPU = (f"peak RSS of the path's process minus that of the same path at {TINY_PARTICLES} particles and "
               f"{TINY_STEPS} steps (Python, Taichi and the compiled kernels), i.e. the memory the data needs")
 
