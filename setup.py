@@ -9,6 +9,6 @@ setup(
     license="MIT",
     install_requires=["taichi>=1.7,<1.8", "numpy", "pillow", "scipy", "trimesh", "tomli; python_version<'3.11'",
                       "plyfile", "scikit-image", "imageio-ffmpeg"],  # trimesh: 3D meshes in; the rest: 3D outputs
-    extras_require={"test": ["pytest", "pot"]},
+    extras_require={"test": ["pytest", "pytest-xdist", "pot"]},  # xdist: the suite on every core
     entry_points={"console_scripts": ["mls-mpm = mls_mpm.cli:main"]},
 )
