@@ -3,7 +3,7 @@
 import numpy as np
 import taichi as ti
 
-from .losses import OT_KINDS
+from .losses import OT_KINDS, ColorLoss, PositionLoss
 from .runtime import real
 
 FAULT_NONE = 2 ** 62  # fault[k] holds min(f * N + p) over faulty (step f, particle p), or this
@@ -125,21 +125,23 @@ class State:
     def clear_faults(self):
         self.fault.from_numpy(np.full(2, FAULT_NONE, dtype=np.int64))
 
-def upload_loss(s, loss):
-    """Copy a loss's targets (and particle colors / target positions) into the state's fields."""
+def upload_loss(s, loss, grids=None):
+    """Copy a loss's targets (and particle colors / target positions) into the state's fields.
+
+    grids: the state's loss grids that hold this loss's terms (default: all of them, a state made for this loss)."""
     if loss is None:
         return
     np_dtype = np.float64 if s.x.dtype == ti.f64 else np.float32
-    for g, spec in zip(s.loss_grids, loss.grids):
+    for g, spec in zip(s.loss_grids if grids is None else grids, loss.grids):
         if g.kind in OT_KINDS:
             g.target_np = spec.target[..., 0] if g.kind == "ot" else spec.target
             continue
         g.target.from_numpy(spec.target.astype(np_dtype))
         if spec.alpha is not None:
             g.alpha.from_numpy(spec.alpha.astype(np_dtype))
-    if s.has_position_loss:
+    if isinstance(loss, PositionLoss):
         s.target_x.from_numpy(loss.target.astype(np_dtype))
-    if s.has_colors:
+    if isinstance(loss, ColorLoss):
         s.color.from_numpy(loss.colors.astype(np_dtype))
 
 

@@ -25,7 +25,7 @@ import pytest
 import mls_mpm
 from conftest import blob, body, random_controls, random_unit, rel_err, scene_config
 from mls_mpm import ot
-from mls_mpm.tape import tape_gradients_in_child
+from mls_mpm.tape import tape_gradient, tape_gradients_in_child, tape_state
 
 pytestmark = pytest.mark.usefixtures("taichi_f64_module")
 
@@ -119,8 +119,9 @@ def problems():
 @pytest.fixture(scope="module", autouse=True)
 def tapes_3d(request, problems):
     """{kind: Tape gradient} of the 3D problems (KINDS_3D), from one child process (mls_mpm.tape) that compiles and
-    runs their Tapes on one core while this module's other tests run (about a minute a loss); not started when
-    no test of this session needs it."""
+    runs their Tapes on one core while this module's other tests run (about 90 s: the problems share one scene and
+    body, so one tape_state and one compile of the trajectory's Tape kernels); not started when no test of this
+    session needs it."""
     if not any(item.name.startswith("test_manual_gradient_matches_tape_3d") for item in request.session.items):
         yield None
         return
@@ -137,7 +138,7 @@ def fd_directional(sim, c, d, eps=EPS):
 
 KINDS = ["position", "mass", "log_mass", "color", "ot", "ot_unbalanced", "color_ot"]
 # 3D: the losses whose kernels differ (particles, mass grids with a penalty, colour grids, transport); each 3D
-# problem compiles its own step kernels (about a minute on 2 cores), so the log mass, unbalanced and colour
+# problem compiles its own step kernels (about 16 s compiled fast on 2 cores), so the log mass, unbalanced and colour
 # transport variants, which differ from these in their numpy or per-node seed only, run in 2D
 KINDS_3D = ["position", "mass", "color", "ot"]
 DIM = pytest.mark.parametrize("dim", [2, 3], ids=["2d", "3d"])
@@ -432,6 +433,15 @@ def test_forward_kernels_pass_tape_validation(tmp_path):
     assert out.returncode == 0, out.stderr[-3000:]
     err = float(out.stdout.split("REL_ERR")[-1])
     assert err <= FD_TOL
+
+
+def test_a_tape_state_refuses_a_loss_it_was_not_made_for(problems):
+    """tape_state: the Tapes of several losses share one State (tape_gradients_in_child, the 3D Tapes here); a loss
+    it holds no grids or targets for is refused, not differentiated against another loss's targets."""
+    sim, x0, c = problems["position"]
+    t = tape_state(sim.cfg, len(x0), [sim.loss])
+    with pytest.raises(ValueError, match="made for other losses"):
+        tape_gradient(sim.cfg, sim.state(0), problems["mass"][0].loss, c, state=t)
 
 
 @pytest.mark.parametrize("kind", KINDS_3D)

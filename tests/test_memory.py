@@ -22,7 +22,7 @@ from conftest import blob
 from mls_mpm import runtime
 from mls_mpm.config import ConfigError
 from mls_mpm.memory import check_memory, estimate_bytes, loss_grid_shapes, parts
-from mls_mpm.state import State
+from mls_mpm.tape import tape_state
 
 pytestmark = pytest.mark.usefixtures("taichi_f64_module")
 
@@ -90,12 +90,11 @@ def test_estimate_matches_the_fields_a_simulator_allocates(name):
 
 @pytest.mark.parametrize("name", list(scenes()))
 def test_tape_estimate_matches_the_tape_fields(name):
-    """gradient_tape's grad-enabled State (built here as tape_gradient builds it, without running the Tape)."""
+    """gradient_tape's grad-enabled State (mls_mpm.tape.tape_state, built without running the Tape)."""
     cfg, x0, loss = scenes()[name]
     runtime.ensure(cfg)
     position = isinstance(loss, mls_mpm.PositionLoss)
-    t = State(cfg, len(x0), loss_grids=loss.grids, position_loss=position,
-              colors=isinstance(loss, mls_mpm.ColorLoss), needs_grad=True)
+    t = tape_state(cfg, len(x0), [loss])
     actual = field_bytes(t)
     ps = parts(cfg, len(x0), loss_grid_shapes(loss), position_loss=position, tape=True)
     assert sum(p.field_bytes for p in ps) == actual
