@@ -132,6 +132,14 @@ def tapes_3d(request, problems):
     pool.shutdown(wait=True)
 
 
+@pytest.fixture(scope="module")
+def tape_2d(problems):
+    """One tape_state for the 2D problems of TAPE_SHARED: their Tapes compile the trajectory's kernels once (about
+    20 s cold) and each loss only its own loss kernels."""
+    sim, x0, _ = problems["position"]
+    return tape_state(sim.cfg, len(x0), [problems[k][0].loss for k in TAPE_SHARED])
+
+
 def fd_directional(sim, c, d, eps=EPS):
     return (sim.forward(c + eps * d) - sim.forward(c - eps * d)) / (2 * eps)
 
@@ -141,6 +149,7 @@ KINDS = ["position", "mass", "log_mass", "color", "ot", "ot_unbalanced", "color_
 # problem compiles its own step kernels (about 16 s compiled fast on 2 cores), so the log mass, unbalanced and colour
 # transport variants, which differ from these in their numpy or per-node seed only, run in 2D
 KINDS_3D = ["position", "mass", "color", "ot"]
+TAPE_SHARED = [k for k in KINDS if k != "log_mass"]  # one scene and body (log_mass's runs at density 40)
 DIM = pytest.mark.parametrize("dim", [2, 3], ids=["2d", "3d"])
 # The OT losses' directional derivatives are small (~1e-6 and ~1e-8 of losses ~0.04 and ~4e-4), so at eps = 1e-6
 # the cancellation error 1e-16 |L| / eps is ~1e-5 of them; at 1e-4 it is ~1e-7 and the truncation ~eps^2 below it.
@@ -152,18 +161,23 @@ FD_EPS = {"ot": 1e-4, "ot_unbalanced": 1e-4, "color_ot": 1e-4}
                                   pytest.param("color", marks=pytest.mark.slow),
                                   pytest.param("ot_unbalanced", marks=pytest.mark.slow),
                                   pytest.param("color_ot", marks=pytest.mark.slow)])
-def test_manual_gradient_matches_tape(problems, kind, dim=2):
+def test_manual_gradient_matches_tape(request, problems, kind, dim=2):
     """backward() (eq 41-71) vs ti.ad.Tape over the same p2g/grid_op/g2p and loss kernels: rel err <= 1e-6.
 
     Losses: position (eq 10); mass on a 32 and a 16 grid with weights 1, 0.5 and a penalty grid alpha on the
-    16 grid (eq 11, 72); log mass; color (eq 12-13). The log mass and color cases are marked slow (each
-    compiles its own grad-enabled Tape state, ~20 s cold); their seeds are checked against the Tape in
-    test_adjoint_kernels.py and their whole trajectories against central differences below.
+    16 grid (eq 11, 72); log mass; color (eq 12-13); transport. The Tapes of the losses on the test scene share
+    one tape_state (tape_2d); log mass, at another density, runs Simulator.gradient_tape, which compiles its own
+    grad-enabled Tape state (~20 s cold; test_isotropic_deformation_gradient runs it too). The cases marked slow
+    have their seeds checked against the Tape in test_adjoint_kernels.py and their whole trajectories against
+    central differences below.
     """
     sim, _, c = problems[kind, dim]
     L = sim.forward(c)
     g = sim.backward()
-    g_tape = sim.gradient_tape(c)
+    if kind in TAPE_SHARED:
+        g_tape = tape_gradient(sim.cfg, sim.state(0), sim.loss, c, state=request.getfixturevalue("tape_2d"))[1]
+    else:
+        g_tape = sim.gradient_tape(c)
     assert L > 0.0 and np.all(np.isfinite(g))
     assert rel_err(g, g_tape) <= TAPE_TOL
     # every control step receives gradient (a reverse pass that stopped early would leave zeros)
