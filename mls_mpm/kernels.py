@@ -67,6 +67,14 @@ def along_slab(a, M, o2: ti.template()):
 
 
 @ti.func
+def outer_column(Q, u, c: ti.template(), o: ti.template()):
+    """Q + u (o - 1) e_c^T: column c's term of one node (or row sum) u at stencil offset o along axis c."""
+    for r in ti.static(range(u.n)):
+        Q[r, c] = scaled_add(Q[r, c], u[r], o - 1)
+    return Q
+
+
+@ti.func
 def outer_slab(Q, u, o2: ti.template()):
     """Q + u (0, o2 - 1)^T: the term of node (i0, o2), or of the sum u of row o2 (row_offsets), in
     sum_i u_i (o_i - 1)^T along axes 1..len(o2) (the caller adds i0 - 1 times the slab's sum of u for axis 0, and
@@ -74,8 +82,7 @@ def outer_slab(Q, u, o2: ti.template()):
     dx (sum_i u_i (o_i - 1)^T - (sum_i u_i) (fx - 1)^T) (eq 19, 60) in a few adds per node instead of dim^2
     multiply-adds, centred as along_slab."""
     for d in ti.static(range(len(o2))):
-        for r in ti.static(range(u.n)):
-            Q[r, d + 1] = scaled_add(Q[r, d + 1], u[r], o2[d] - 1)
+        Q = outer_column(Q, u, d + 1, o2[d])
     return Q
 
 
@@ -83,10 +90,7 @@ def outer_slab(Q, u, o2: ti.template()):
 def outer_row(Q, u, k: ti.template()):
     """Q + u (0, .., 0, k - 1)^T: node k of a row's term of sum_i u_i (o_i - 1)^T along the last axis; a row's
     middle axes take the row's sum of u once (outer_slab), not each node's."""
-    last = ti.static(Q.m - 1)
-    for r in ti.static(range(u.n)):
-        Q[r, last] = scaled_add(Q[r, last], u[r], k - 1)
-    return Q
+    return outer_column(Q, u, Q.m - 1, k)
 
 
 @ti.func
