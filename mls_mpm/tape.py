@@ -32,12 +32,14 @@ def tape_state(cfg, n_particles, losses):
     t = State(cfg, n_particles, loss_grids=[spec for loss in losses for spec in loss.grids],
               position_loss=any(isinstance(loss, PositionLoss) for loss in losses),
               colors=any(isinstance(loss, ColorLoss) for loss in losses), needs_grad=True)
-    t.tape_losses = losses
+    t.tape_losses, t.tape_scene = losses, (cfg, n_particles)
     return t
 
 
-def _grids_of(t, loss):
-    """The loss grids of `t` (a tape_state) that hold `loss`'s terms."""
+def _grids_of(t, cfg, n_particles, loss):
+    """The loss grids of `t` (a tape_state) that hold `loss`'s terms, on the scene and body `t` was made for."""
+    if t.tape_scene != (cfg, n_particles):
+        raise ValueError("tape_gradient: this state was made for another config or particle count (tape_state)")
     start = 0
     for other in t.tape_losses:
         if other is loss:
@@ -57,7 +59,7 @@ def tape_gradient(cfg, init, loss, controls, validation=False, state=None):
     runtime.ensure(cfg, tape=True)
     np_dtype = np.float64 if cfg.dtype == "f64" else np.float32
     t = state if state is not None else tape_state(cfg, len(init["x"]), [loss])
-    grids = _grids_of(t, loss)
+    grids = _grids_of(t, cfg, len(init["x"]), loss)
     upload_loss(t, loss, grids)
     write_step(t, 0, *(np.asarray(init[k]).astype(np_dtype) for k in ("x", "v", "C", "F")))
     t.F_pc.from_numpy(np.asarray(controls).astype(np_dtype))

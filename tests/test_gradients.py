@@ -451,11 +451,14 @@ def test_forward_kernels_pass_tape_validation(tmp_path):
 
 def test_a_tape_state_refuses_a_loss_it_was_not_made_for(problems):
     """tape_state: the Tapes of several losses share one State (tape_gradients_in_child, the 3D Tapes here); a loss
-    it holds no grids or targets for is refused, not differentiated against another loss's targets."""
+    it holds no grids or targets for is refused, not differentiated against another loss's targets, and so is a
+    config (whose constants its kernels compile in) or particle count it was not made for."""
     sim, x0, c = problems["position"]
     t = tape_state(sim.cfg, len(x0), [sim.loss])
     with pytest.raises(ValueError, match="made for other losses"):
         tape_gradient(sim.cfg, sim.state(0), problems["mass"][0].loss, c, state=t)
+    with pytest.raises(ValueError, match="made for another config or particle count"):
+        tape_gradient(sim.cfg.replace(density=40.0), sim.state(0), sim.loss, c, state=t)
 
 
 @pytest.mark.parametrize("kind", KINDS_3D)
