@@ -9,6 +9,7 @@ next reverse step's G2P (eq 17 and the walls, by the forward's own grid_op_node:
 import taichi as ti
 
 from mls_mpm.grid import grid_op, grid_op_node
+from mls_mpm.state import LANE_TASK, lane_span
 
 from .grid import grid_op_node_reverse
 from .state import zero_particle
@@ -54,9 +55,9 @@ def step_loops_reverse(s: ti.template(), a: ti.template(), f, f0):
     m_i, p_i, with the same private grids per thread (lanes).
     """
     if ti.static(s.lanes > 0):
-        ti.loop_config(block_dim=1)
-        for lane in range(s.lanes):
-            for p in range(lane * s.lane_chunk, ti.min((lane + 1) * s.lane_chunk, s.n_particles)):
+        for item in range(s.lanes * LANE_TASK):  # one task per lane, one thread each: mls_mpm.state.LANE_TASK
+            lane, lo, hi = lane_span(s, item)
+            for p in range(lo, hi):
                 g2p_particle_reverse(s, a, f, p, lane)
     else:
         for p in range(s.n_particles):

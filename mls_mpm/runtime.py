@@ -151,8 +151,10 @@ class TaichiRuntime:
         # unrolling_limit=0: the 3D stencil's 4^3 = 64 nodes are unrolled on purpose (ti.static), which Taichi
         # would otherwise warn of at every compile
         scalarized = needs_scalarized(cfg, bool(tape))
+        # cpu_block_dim_adaptive (Taichi's default, set here because state.LANE_TASK relies on it): how a CPU
+        # range-for is cut into tasks, which gives each thread one lane of the scatter loops
         kwargs = dict(default_fp=real(cfg.dtype), fast_math=False, offline_cache=True, cpu_max_num_threads=threads,
-                      unrolling_limit=0, force_scalarize_matrix=scalarized)
+                      cpu_block_dim_adaptive=True, unrolling_limit=0, force_scalarize_matrix=scalarized)
         for backend in allowed:
             if not _driver_present(backend):
                 continue

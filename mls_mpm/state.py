@@ -50,6 +50,25 @@ class LossGrid:
             self.adj_m = ti.Vector.field(channels, dtype, shape=self.shape)  # dL/dm_i (eq 41)
 
 
+# A lane loop (`for item in range(s.lanes * LANE_TASK)`, lane_span) runs each lane's particles as LANE_TASK items.
+# Taichi 1.7's CPU range-for cuts a loop of n items into tasks of min(1024, max(512, n / (32 threads))) items, which
+# its threads take in turn (cpu_block_dim_adaptive, on by default and set by runtime.ensure; it overrides
+# ti.loop_config(block_dim)): a loop over the `lanes` lanes themselves was one task, run by one thread, one lane after
+# the other. Here n / (32 threads) = 16 items (lanes = threads), so the tasks are of 512 items, one per lane: each
+# thread scatters one lane's particles, in index order, into that lane's private grid, and no two threads share one.
+LANE_TASK = 512
+
+
+@ti.func
+def lane_span(s: ti.template(), item):
+    """The lane of item `item` of a lane loop and its particles lo..hi-1: the lane's share of s.lane_chunk particles
+    cut into LANE_TASK runs of s.lane_item, in index order (a run past the lane's last particle is empty)."""
+    lane = item // LANE_TASK
+    end = ti.min((lane + 1) * s.lane_chunk, s.n_particles)
+    lo = ti.min(lane * s.lane_chunk + (item % LANE_TASK) * s.lane_item, end)
+    return lane, lo, ti.min(lo + s.lane_item, end)
+
+
 @ti.data_oriented
 class State:
     """Fields of one simulation; per-step fields are shaped (steps + 1, ...) or (steps, ...) for the grid.
@@ -85,6 +104,7 @@ class State:
         # (no float atomics); 0: atomic adds straight into grid f (GPUs, the serial schedule, the Tape)
         self.lanes = lanes
         self.lane_chunk = -(-n_particles // max(lanes, 1))  # particles per lane
+        self.lane_item = -(-self.lane_chunk // LANE_TASK)  # particles per item of a lane loop (lane_span)
         # eq 17 divides by m_i + m_eps: zero at empty nodes, nowhere a cut; in f32 large enough that m_eps^2 (in
         # the Tape's derivative of the quotient) does not underflow to 0, still far below f32's resolution
         self.m_eps = (1e-20 if cfg.dtype == "f64" else 1e-12) * cfg.m_p

@@ -9,6 +9,7 @@ Grid f + 1 is cleared by step f's grid loop, after nothing reads it, so each ste
 import taichi as ti
 
 from .grid import grid_op_node
+from .state import LANE_TASK, lane_span
 from .transfer import check_particle, g2p_particle, p2g_particle, particle_G
 
 
@@ -64,9 +65,9 @@ def step_loops(s: ti.template(), f):
     if ti.static(s.lanes > 0):
         for p in range(s.n_particles):
             s.G_step[p] = particle_G(s, f, p)
-        ti.loop_config(block_dim=1)
-        for lane in range(s.lanes):
-            for p in range(lane * s.lane_chunk, ti.min((lane + 1) * s.lane_chunk, s.n_particles)):
+        for item in range(s.lanes * LANE_TASK):  # one task per lane, one thread each: state.LANE_TASK
+            lane, lo, hi = lane_span(s, item)
+            for p in range(lo, hi):
                 check_particle(s, f, p, p2g_particle(s, f, p, lane, s.G_step[p]))
     else:
         for p in range(s.n_particles):
