@@ -12,10 +12,11 @@ DTYPES = ("f32", "f64")
 ARCHS = ("cpu", "gpu", "cuda", "vulkan")
 SCHEDULES = ("auto", "serial", "parallel")
 SERIAL_BELOW = 4000  # particles + grid nodes under which "auto" runs serially on a CPU (3D, or over 2 threads)
-# The same in 2D on at most 2 CPU threads: there the one serial launch measured faster (forward + backward) than
-# the parallel schedule on 2 threads at every size tried, 1,245 to 64,000 particles on 32^2 to 128^2 grids
-# (BENCHMARKS.md, "Schedules"); in 3D (17k particles, 32^3) the parallel one was faster.
-SERIAL_BELOW_2D_TWO_THREADS = 100_000
+# The same in 2D on 2 CPU threads, where a step's loops are short and the parallel schedule's per-loop cost (waking
+# the second thread, one launch a step) weighs more: there the one serial launch measured faster (forward +
+# backward) up to 12,000 particles on 64^2 and 16,000 on 128^2 (32,384 units), the parallel one from 32,000
+# particles on 128^2 (48,384; BENCHMARKS.md, "Schedules"); in 3D (17k particles, 32^3) the parallel one, 1.6x.
+SERIAL_BELOW_2D_TWO_THREADS = 40_000
 STENCIL = 4  # the cubic B-spline touches 4 nodes per axis (base = floor(x/dx) - 1)
 DIMS = (2, 3)  # the dimensions the simulator runs in
 GRAVITY = -9.8  # default gravity along y (axis 1), in 2D and 3D
@@ -87,7 +88,7 @@ class SimConfig:
         Taichi is re-initialised when it runs with another count (see runtime.TaichiRuntime).
     schedule: "parallel" launches one kernel per step with parallel loops; "serial" runs all steps in one
         serial launch (faster for small scenes on a CPU, where launch cost dominates); "auto" picks
-        serial on a CPU below SERIAL_BELOW particle-node units (2D on at most 2 threads:
+        serial on a CPU with one thread or below SERIAL_BELOW particle-node units (2D on 2 threads:
         SERIAL_BELOW_2D_TWO_THREADS; see BENCHMARKS.md), else parallel.
     max_memory_gb: refuse a simulator whose preallocated fields would exceed this many GiB
         (0: 90% of the memory available when it is built).
@@ -200,8 +201,12 @@ class SimConfig:
         """Whether stepping runs serially in one launch (see `schedule`)."""
         if self.schedule != "auto":
             return self.schedule == "serial"
+        if self.arch != "cpu":
+            return False
+        if self.cpu_threads == 1:  # one thread: the parallel schedule would only add its launches and private grid
+            return True
         below = SERIAL_BELOW_2D_TWO_THREADS if self.dim == 2 and self.cpu_threads <= 2 else SERIAL_BELOW
-        return self.arch == "cpu" and n_particles + self.n_grid ** self.dim < below
+        return n_particles + self.n_grid ** self.dim < below
 
     def lanes(self, n_particles) -> int:
         """Private scatter grids (one per CPU thread) of the parallel schedule; 0: atomics (GPU) or serial."""

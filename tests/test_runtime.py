@@ -93,9 +93,11 @@ def test_a_reset_outside_the_runtime_is_seen():
 
 
 @pytest.mark.parametrize("dim, n_grid, particles, threads, serial", [
-    (2, 64, 8192, 2, True),  # 2D on 2 threads: serial measured faster up to 64k particles (BENCHMARKS.md)
-    (2, 128, 64000, 1, True),
-    (2, 256, 64000, 2, False),  # 65,536 nodes + 64,000 particles: past SERIAL_BELOW_2D_TWO_THREADS
+    (2, 64, 8192, 2, True),  # 2D on 2 threads: serial measured faster up to 16k particles on 128^2 (BENCHMARKS.md)
+    (2, 128, 64000, 1, True),  # one thread: always serial
+    (3, 64, 100000, 1, True),
+    (2, 128, 32000, 2, False),  # 16,384 nodes + 32,000 particles: past SERIAL_BELOW_2D_TWO_THREADS
+    (2, 256, 64000, 2, False),
     (2, 64, 8192, 4, False),  # more threads: the general SERIAL_BELOW (4,000 particles + nodes)
     (2, 32, 1000, 8, True),
     (3, 32, 17157, 2, False),  # 3D: the parallel schedule measured faster (17k particles, 32^3)
