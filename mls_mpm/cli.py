@@ -165,8 +165,8 @@ def build_parser():
                             "afterwards) and the working tree side by side, alternating their runs, and print "
                             "both and the speed-ups (old / new); the manual path only, no Tape")
     bench.add_argument("--repeats", type=integer(1), default=None, metavar="K",
-                       help="gradient --against: measured runs of each tree per case; the table shows the "
-                            "minimum (default: 3)")
+                       help="gradient: measured runs of each case (with --against: of each tree, alternating) "
+                            "after a warm-up run; the table shows the minimum (default: 1, with --against 3)")
     bench.add_argument("--max-seconds", type=float, default=None,
                        help="tradeoff: wall-time budget of one row; a row over it is stopped and marked (default: "
                             "no limit)")
@@ -322,8 +322,8 @@ def cmd_bench(args):
         raise BenchError(f"bench {args.what}: --dim applies to bench gradient only; drop it")
     if args.against is not None and args.what != "gradient":
         raise BenchError(f"bench {args.what}: --against applies to bench gradient only; drop it")
-    if args.repeats is not None and (args.what != "gradient" or args.against is None):
-        raise BenchError(f"bench {args.what}: --repeats applies to bench gradient --against REV only; drop it")
+    if args.repeats is not None and args.what != "gradient":
+        raise BenchError(f"bench {args.what}: --repeats applies to bench gradient only; drop it")
     if args.max_seconds is not None and (args.what != "tradeoff" or not 0 < args.max_seconds < math.inf):
         raise BenchError(f"bench {args.what}: --max-seconds {args.max_seconds:g}: expected seconds > 0, with bench "
                          "tradeoff only")
@@ -351,7 +351,7 @@ def cmd_bench(args):
             bench_against(args.against, repeats=args.repeats or 3, quick=args.quick, arch=args.arch, dims=dims,
                           out=args.out)
         else:
-            bench_gradient(quick=args.quick, arch=args.arch, out=args.out, dims=dims)
+            bench_gradient(quick=args.quick, arch=args.arch, out=args.out, dims=dims, repeats=args.repeats or 1)
         return 0
     if args.what == "scaling":
         from .bench import bench_scaling

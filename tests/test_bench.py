@@ -113,7 +113,7 @@ def test_bench_options_parse():
     (["bench", "gradient", "s.toml"], "bench gradient: SCENE s.toml: a scene applies to bench tradeoff only; drop it"),
     (["bench", "scaling", "s.toml", "--quick"], "bench scaling: SCENE s.toml: a scene applies to bench tradeoff only"),
     (["bench", "scaling", "--against", "HEAD"], "bench scaling: --against applies to bench gradient only; drop it"),
-    (["bench", "gradient", "--repeats", "2"], "bench gradient: --repeats applies to bench gradient --against REV only"),
+    (["bench", "scaling", "--repeats", "2"], "bench scaling: --repeats applies to bench gradient only; drop it"),
     (["bench", "gradient", "--against", "HEAD", "--repeats", "0"],
      "bench: argument --repeats: expected an integer >= 1"),
 ])
@@ -197,6 +197,28 @@ def test_bench_gradient_writes_out_after_the_check(tmp_path, monkeypatch):
     assert any(line.startswith("3D forward particle-steps/s (f32, 32^3) / 2D (f32, 64^2), this run: 2.00") for line in table)
     assert any(line.startswith("One 10-step window of the 3D successor's settings (17157 particles, 32^3): forward + "
                                "manual backward 0.02 s") for line in table)
+
+
+def test_bench_gradient_repeats_take_the_least_of_each_figure(tmp_path, monkeypatch):
+    """repeats=3: a warm-up and three measured children per path and size; each figure the least of the three
+    (children faked with figures that fall and rise: the least is not the first or the last run's)."""
+    monkeypatch.setattr(gradient, "backend_here", lambda arch: "cpu")
+    calls = []
+
+    def child(case, path, steps, tiny=False):
+        calls.append((path, tiny))
+        k = [9.0, 3.0, 1.0, 2.0][(len(calls) - 1) % 4]  # warm-up, then 3 measured runs
+        if path == "manual":
+            return {"forward_ms": k, "backward_ms": 2 * k, "peak_mib": (40.0 if tiny else 100.0) + k, "backend": "cpu"}
+        return {"tape_ms": 5 * k, "peak_mib": (80.0 if tiny else 200.0) + k, "backend": "cpu"}
+
+    monkeypatch.setattr(gradient, "run_child", child)
+    out = tmp_path / "g.md"
+    bench_gradient(quick=True, out=out, emit=lambda *_: None, dims=(2,), repeats=3)
+    assert len(calls) == 2 * 4 * 4  # 2 cases x (manual, tape, their tiny runs) x (warm-up + 3)
+    table = out.read_text().splitlines()
+    assert "Each figure: the least over 3 runs after a warm-up run." in table[0]
+    assert table[4].endswith("| 1.000 | 8.19 M | 2.000 | 2.00 | 5.000 | 1.67 | 60 | 120 | 0.50 |")
 
 
 def git(*args):

@@ -17,9 +17,10 @@ MEMORY_CPU = (f"peak RSS of the path's process minus that of the same path at {T
               f"{TINY_STEPS} steps (Python, Taichi and the compiled kernels), i.e. the memory the data needs")
 
 
-def bench_gradient(quick=False, emit=print, arch="cpu", out=None, dims=(2, 3)):
+def bench_gradient(quick=False, emit=print, arch="cpu", out=None, dims=(2, 3), repeats=1):
     """Print the gradient benchmark as a markdown table (and return its rows); out: also write it there.
-    dims: the dimensions whose cases run (CASES, 2D and 3D).
+    dims: the dimensions whose cases run (CASES, 2D and 3D). repeats: measured runs of each child after its
+    warm-up; each figure is the least over them (a run the rest of the machine slowed least).
 
     A file `out` that could not be written is refused before anything is measured."""
     if out:
@@ -32,11 +33,12 @@ def bench_gradient(quick=False, emit=print, arch="cpu", out=None, dims=(2, 3)):
         emit(text)
 
     def warm(*args, **kwargs):
-        """A child run twice, the second measured: the first fills Taichi's offline cache, so that neither
-        peak RSS holds the compiler's memory (the sizes are compile-time constants: the tiny runs compile
-        kernels of their own)."""
+        """A child run 1 + repeats times, the last `repeats` measured (the least of each figure): the first fills
+        Taichi's offline cache, so that no peak RSS holds the compiler's memory (the sizes are compile-time
+        constants: the tiny runs compile kernels of their own)."""
         run_child(*args, **kwargs)
-        return run_child(*args, **kwargs)
+        runs = [run_child(*args, **kwargs) for _ in range(repeats)]
+        return {k: min(r[k] for r in runs) if k.endswith(("_ms", "_mib")) else runs[-1][k] for k in runs[-1]}
 
     rows = []
     for name, case in CASES.items():
@@ -53,7 +55,8 @@ def bench_gradient(quick=False, emit=print, arch="cpu", out=None, dims=(2, 3)):
     memory = (MEMORY_CPU if backend == "cpu" else
               "not measured (the fields live in device memory; the estimate of the preallocated fields is in "
               "the scaling table)")
-    say(f"{measured_on(backend)}. Memory: {memory}.\n")
+    least = f" Each figure: the least over {repeats} runs after a warm-up run." if repeats > 1 else ""
+    say(f"{measured_on(backend)}. Memory: {memory}.{least}\n")
     say("| case | fwd ms/step | particle-steps/s | manual bwd ms/step | bwd / fwd | Tape fwd+bwd ms/step | "
         "Tape / manual (fwd+bwd) | manual MiB | Tape MiB | manual / Tape memory |")
     say("|---|---|---|---|---|---|---|---|---|---|")
