@@ -205,7 +205,7 @@ class SimConfig:
             return False
         if self.cpu_threads == 1:  # one thread: the parallel schedule would only add its launches and private grid
             return True
-        below = SERIAL_BELOW_2D_TWO_THREADS if self.dim == 2 and self.cpu_threads <= 2 else SERIAL_BELOW
+        below = SERIAL_BELOW_2D_TWO_THREADS if self.dim == 2 and self.cpu_threads == 2 else SERIAL_BELOW
         return n_particles + self.n_grid ** self.dim < below
 
     def lanes(self, n_particles) -> int:

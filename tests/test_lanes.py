@@ -6,7 +6,6 @@ and a loop over the lanes themselves ran as one task of Taichi's, on one thread 
 The loop below has the shape of step.step_loops' and adjoint.step.step_loops_reverse's scatter loops and records
 which thread ran each item (ti.global_thread_idx(), the CPU thread's index).
 """
-import numpy as np
 import pytest
 import taichi as ti
 
