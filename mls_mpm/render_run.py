@@ -107,7 +107,10 @@ def render_run(out_dir, mode=None, size=None, every=None, arch=None, emit=print,
         write_gif(frames_dir, out / "animation.gif")
     else:
         (out / "animation.gif").unlink(missing_ok=True)  # a GIF of other frames
-    write_mp4(frames_dir, out / "animation.mp4")
+    if rs.get("mp4", True):
+        write_mp4(frames_dir, out / "animation.mp4")
+    else:
+        (out / "animation.mp4").unlink(missing_ok=True)  # a video of other frames
     panels = []
     for i in (0, len(paths) // 2, len(paths) - 1):
         with Image.open(paths[i]) as im:

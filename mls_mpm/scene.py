@@ -68,6 +68,7 @@ class RenderSettings:
     size: int = 512
     mode: str = "mass"  # 2D: mass | color | particles; 3D: surface | volume | particles (mass, color: surface)
     gif: bool = True
+    mp4: bool = True  # animation.mp4 through imageio-ffmpeg's ffmpeg
     outline: bool = False
     background: str = "white"  # 2D PNG frames: "white", or "transparent" (an alpha channel, for compositing)
 

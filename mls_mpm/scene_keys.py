@@ -247,6 +247,7 @@ SPEC = {
         "mode": (None, _choice(RENDER_MODES + tuple(m for m in MODES_3D if m not in RENDER_MODES))),
         "background": ("white", _choice(RENDER_BACKGROUNDS)),
         "gif": (True, _bool()),
+        "mp4": (True, _bool()),
         "outline": (False, _bool()),
     },
 }

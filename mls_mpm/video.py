@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from .errors import UserError
 from .frames import frame_paths, on_white, temp_path
 
 FPS = 20  # frames per second, as animation.gif (frames.write_gif)
@@ -42,7 +43,11 @@ def write_mp4(frames_dir, path, fps=FPS):
 
     Every frame is padded to the first frame's size rounded up to even sides. Returns the number of frames.
     """
-    import imageio_ffmpeg
+    try:
+        import imageio_ffmpeg
+    except ImportError:  # a dependency of the package (setup.py), missing from a partial install
+        raise UserError(f"{path}: writing MP4 needs the imageio-ffmpeg package, which is not installed here (pip "
+                        "install imageio-ffmpeg); or set render.mp4 = false") from None
 
     paths = frame_paths(frames_dir)
     if not paths:

@@ -213,3 +213,17 @@ def test_scene_key_render_background_transparent_gives_frames_with_alpha(tmp_pat
         assert a[0, 0] == a[0, -1] == a[-1, 0] == a[-1, -1] == 0 and a.max() == 255
     with Image.open(out / "sheet.png") as im:
         assert im.mode == "RGB"
+
+
+def test_gif_and_mp4_off_write_neither_and_remove_stale_ones(tmp_path):
+    """render.gif = false and render.mp4 = false: the frames, sheet and loss plot are written, no animation, and an
+    earlier render's animation.gif and animation.mp4 (of other frames) are removed."""
+    out = tmp_path / "tiny"
+    run_scene(load_scene(TINY, ["optimize.iterations=1", "render.gif=false", "render.mp4=false"]), out,
+              emit=lambda *_: None, render=False)
+    for name in ("animation.gif", "animation.mp4"):
+        (out / name).write_bytes(b"an earlier render")
+    render_run(out, emit=lambda *_: None)
+    assert [p.name for p in frame_paths(out / "frames")] == FRAMES
+    assert (out / "sheet.png").is_file() and (out / "loss.png").is_file()
+    assert not (out / "animation.gif").exists() and not (out / "animation.mp4").exists()

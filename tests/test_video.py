@@ -1,5 +1,6 @@
 """animation.mp4 (mls_mpm/video.py): H.264 frames decoded back by the ffmpeg that imageio-ffmpeg ships."""
 import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -68,3 +69,17 @@ def test_a_failed_encoding_keeps_the_old_video(tmp_path):
         write_mp4(frames, path)
     assert path.read_bytes() == b"old"
     assert not [p.name for p in tmp_path.iterdir() if p.name.endswith(".tmp")]
+
+
+def test_a_missing_imageio_ffmpeg_is_one_line_naming_the_fix(tmp_path, monkeypatch):
+    """A partial install without imageio-ffmpeg (a dependency in setup.py): one UserError naming the file, the
+    package and render.mp4 = false, not an ImportError from inside the encoder; nothing is written."""
+    from mls_mpm.errors import UserError
+
+    frames = grey_frames(tmp_path, (16, 16), [0, 128])
+    monkeypatch.setitem(sys.modules, "imageio_ffmpeg", None)  # `import imageio_ffmpeg` raises
+    path = tmp_path / "animation.mp4"
+    with pytest.raises(UserError, match=r"animation\.mp4: writing MP4 needs the imageio-ffmpeg package, which is not "
+                                        r"installed here \(pip install imageio-ffmpeg\); or set render\.mp4 = false$"):
+        write_mp4(frames, path)
+    assert not path.exists()
