@@ -221,6 +221,32 @@ def test_bench_gradient_repeats_take_the_least_of_each_figure(tmp_path, monkeypa
     assert table[4].endswith("| 1.000 | 8.19 M | 2.000 | 2.00 | 5.000 | 1.67 | 60 | 120 | 0.50 |")
 
 
+def test_bench_gradient_on_a_gpu_runs_no_memory_children(tmp_path, monkeypatch):
+    """On a GPU no memory is measured: neither the cache-filling warm-up child nor the tiny ones run (each child
+    still excludes compile time by its own warm-up pass), only `repeats` children per path and case; the memory
+    columns are dashes and the header names the backend."""
+    monkeypatch.setattr(gradient, "backend_here", lambda arch: "cuda")
+    monkeypatch.setattr(gradient, "_device_name", lambda backend: "a test GPU")
+    calls = []
+
+    def child(case, path, steps, tiny=False):
+        calls.append((case["arch"], path, tiny))
+        k = [3.0, 1.0][(len(calls) - 1) % 2]
+        if path == "manual":
+            return {"forward_ms": k, "backward_ms": 2 * k, "peak_mib": 100.0, "backend": "cuda"}
+        return {"tape_ms": 5 * k, "peak_mib": 200.0, "backend": "cuda"}
+
+    monkeypatch.setattr(gradient, "run_child", child)
+    out = tmp_path / "g.md"
+    bench_gradient(quick=True, arch="gpu", out=out, emit=lambda *_: None, dims=(2,), repeats=2)
+    assert calls == [("gpu", "manual", False)] * 2 + [("gpu", "tape", False)] * 2 + \
+        [("gpu", "manual", False)] * 2 + [("gpu", "tape", False)] * 2
+    table = out.read_text().splitlines()
+    assert table[0].startswith("Taichi cuda (a test GPU); CPU: ") and "Memory: not measured" in table[0]
+    assert table[0].endswith("Each figure: the least over 2 runs.")
+    assert table[4].endswith("| 1.000 | 8.19 M | 2.000 | 2.00 | 5.000 | 1.67 | - | - | - |")
+
+
 def git(*args):
     return subprocess.run(["git", "-C", str(ROOT), *args], capture_output=True, text=True)
 
