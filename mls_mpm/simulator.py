@@ -143,7 +143,7 @@ class Simulator:
         s = self.fields
         self._forward_done = self._backward_done = False
         self._stored = start
-        s.F_pc.from_numpy(controls.astype(self.np_dtype))
+        s.F_pc.from_numpy(controls)
         s.clear_faults()
         clear_grid(s, start)
         if self._serial:
@@ -288,14 +288,17 @@ class Simulator:
         return a
 
     def _controls(self, controls):
+        """controls (K, N, dim, dim) in the simulation's dtype, their shape and finiteness there checked. One cast
+        and one pass over them: on a GPU this host work is a large share of a short forward (BENCHMARKS.md)."""
         controls = np.asarray(controls, dtype=np.float64)
         if controls.shape != self.control_shape:
             raise ValueError(f"controls: expected shape {self.control_shape} (K, N, dim, dim), got {controls.shape}")
-        bad = np.argwhere(~self._finite_in_dtype(controls))
-        if len(bad):
-            k, p = bad[0][:2]
+        with np.errstate(over="ignore", invalid="ignore"):
+            cast = controls.astype(self.np_dtype, copy=False)
+        if not np.isfinite(cast).all():
+            k, p = np.argwhere(~np.isfinite(cast))[0][:2]
             raise ValueError(f"controls: control {k} (step {k * self.cfg.stride}), particle {p} holds NaN or Inf (in {self.cfg.dtype})")
-        return controls
+        return cast
 
     def _raise_fault(self, s):
         fault = s.fault.to_numpy()
