@@ -6,8 +6,8 @@ Runs, each in its own processes: `mls-mpm bench gradient` (speed and memory of f
 ti.ad.Tape), `mls-mpm bench scaling` (the same against particles, steps and grid), `mls-mpm bench tradeoff`
 on the torus scene (accuracy against time; the guide below is computed from it), benchmarks/render_speed.py
 (frame rendering vs simulation), and the start-up time of `mls-mpm run` cold (empty Taichi offline cache) and
-warm. Plots go to benchmarks/figures/. GPU figures come from benchmarks/gpu_gradient.md, written on a machine with
-a GPU by `mls-mpm bench gradient --arch gpu --out benchmarks/gpu_gradient.md` (where present).
+warm. Plots go to benchmarks/figures/. GPU figures come from benchmarks/gpu_gradient.md, written from what `bash
+benchmarks/gpu.sh` measured on a machine with a GPU (where present).
 The tradeoff sweep resumes from renders/tradeoff_report/tradeoff.csv: delete that folder after changing the code.
 """
 import csv
