@@ -15,6 +15,10 @@
 #    its own), and the first runs of the README's 2D and 3D scenes (compile included).
 # 2. One after another on a quiet GPU: `mls-mpm bench gradient --arch gpu`, 2D then 3D (gpu_gradient_2d.md,
 #    gpu_gradient_3d.md), the larger cases (gpu_scale.md), the two scenes again with the cache warm (scenes.txt).
+#
+# It writes 8 files into $OUT, the most the device tool brings back: tee nothing else there. On an H200 with 16 CPU
+# cores (2026-12-04) it took 364 s (phase 1 about 160 s), plus about 70 s to start the machine and copy the tree
+# (Taichi's wheel is 56 MB of the 64 MiB that travels; imageio-ffmpeg's 68 MB cannot come along, so no MP4 there).
 set -u
 OUT=${OUT:-renders/gpu}
 ARCH=${ARCH:-gpu}
