@@ -65,10 +65,7 @@ def compile_all(arch, quick):
 
 def scale(arch, quick):
     cases = QUICK if quick else SCALE
-    rows = []
-    for name, case in cases.items():
-        r = run_child(dict(case, arch=arch), "manual", case["steps"])
-        rows.append((case, r))
+    rows = [(case, run_child(dict(case, arch=arch), "manual", case["steps"])) for case in cases.values()]
     print(f"{measured_on(rows[0][1]['backend'])}. One run each after a warm-up pass in the same process.\n")
     print("| case | fwd ms/step | particle-steps/s | manual bwd ms/step | bwd / fwd |")
     print("|---|---|---|---|---|")

@@ -273,10 +273,14 @@ class Simulator:
         if self.loss is None:
             raise ValueError("this Simulator has no loss: pass loss=PositionLoss/MassLoss/ColorLoss to differentiate")
 
-    def _finite_in_dtype(self, a):
-        """Where a stays finite once cast to the simulation's dtype (1e39 is Inf in f32)."""
+    def _in_dtype(self, a):
+        """a cast to the simulation's dtype (no copy when it already is), overflow silent: 1e39 is Inf in f32."""
         with np.errstate(over="ignore", invalid="ignore"):
-            return np.isfinite(a.astype(self.np_dtype))
+            return a.astype(self.np_dtype, copy=False)
+
+    def _finite_in_dtype(self, a):
+        """Where a stays finite once cast to the simulation's dtype."""
+        return np.isfinite(self._in_dtype(a))
 
     def _particle_array(self, a, name, shape):
         a = np.asarray(a, dtype=np.float64)
@@ -293,10 +297,10 @@ class Simulator:
         controls = np.asarray(controls, dtype=np.float64)
         if controls.shape != self.control_shape:
             raise ValueError(f"controls: expected shape {self.control_shape} (K, N, dim, dim), got {controls.shape}")
-        with np.errstate(over="ignore", invalid="ignore"):
-            cast = controls.astype(self.np_dtype, copy=False)
-        if not np.isfinite(cast).all():
-            k, p = np.argwhere(~np.isfinite(cast))[0][:2]
+        cast = self._in_dtype(controls)
+        finite = np.isfinite(cast)
+        if not finite.all():
+            k, p = np.argwhere(~finite)[0][:2]
             raise ValueError(f"controls: control {k} (step {k * self.cfg.stride}), particle {p} holds NaN or Inf (in {self.cfg.dtype})")
         return cast
 
