@@ -8,6 +8,7 @@ import importlib.util
 import os
 import signal
 import subprocess
+import sys
 import tempfile
 from pathlib import Path
 
@@ -372,3 +373,32 @@ def test_against_table_takes_the_least_of_each_tree(temp_here, monkeypatch):
     assert lines[-1] == ("| f64, 32^2 grid, 1245 particles, 40 steps | 2.400 | 1.200 | 2.00 | 3.600 | 2.400 | 1.50 | "
                          "1.50 | 2.00 | 250 | 150 |")
     assert list(temp_here.iterdir()) == []
+
+
+LOOP_ROWS = ["forward() (whole pass)", "backward() (whole pass)", "forward: stress + P2G + check", "forward: grid",
+             "forward: G2P", "reverse: G2P", "reverse: grid", "reverse: stress + P2G", "reverse: zero + check"]
+
+
+def test_loop_profile_times_every_loop_of_a_step():
+    """benchmarks/loop_profile.py runs each loop of the serial schedule's step (the real step bodies, imported from
+    mls_mpm.step, mls_mpm.transfer and adjoint/) and prints one row of ms per step for each, all positive."""
+    res = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "loop_profile.py"), "--case", "small",
+                          "--steps", "4", "--repeats", "1"], capture_output=True, text=True, cwd=ROOT,
+                         env={**os.environ, "TI_LOG_LEVEL": "error"})
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert "f64, 32^2 grid, 1245 particles, 4 steps" in res.stdout
+    rows = dict(line.strip("|").rsplit("|", 1) for line in res.stdout.splitlines()
+                if line.startswith("| ") and not line.startswith("| loop"))
+    assert [label.strip() for label in rows] == LOOP_ROWS
+    assert all(float(ms) > 0 for ms in rows.values())
+
+
+@pytest.mark.parametrize("argv, says", [(["--repeats", "0"], "--repeats 0: expected an integer >= 1"),
+                                        (["--steps", "-2"], "--steps -2: expected an integer >= 1"),
+                                        (["--case", "3d"], "invalid choice: '3d'")])
+def test_loop_profile_refuses_bad_options(argv, says):
+    res = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "loop_profile.py"), *argv],
+                         capture_output=True, text=True, cwd=ROOT)
+    assert res.returncode == 2
+    assert says in res.stderr
+    assert "Traceback" not in res.stderr
