@@ -53,10 +53,10 @@ def guide(table):
     rows = [r for r in every if r["status"] == "ok"]
     over = [r for r in every if r["status"] != "ok"]
     base = next(r for r in rows if r["row"] == "base")
-    t0, q0, i0 = float(base["wall_seconds"]), float(base["loss_ratio"]), float(base["iou"])
+    t0, q0, i0 = float(base["wall_seconds"]), float(base["loss_ratio"]), float(base["iou"] or "nan")
     lines = ["| change | time vs scene settings | loss_final / loss_initial | iou | verdict |", "|---|---|---|---|---|"]
     for r in sorted(rows, key=lambda r: float(r["wall_seconds"])):
-        t, q, i = float(r["wall_seconds"]), float(r["loss_ratio"]), float(r["iou"])
+        t, q, i = float(r["wall_seconds"]), float(r["loss_ratio"]), float(r["iou"] or "nan")  # "": none (target_iou)
         if r["row"] == "base":
             verdict = "reference"
         else:  # loss ratios span decades: compare them as a factor

@@ -226,6 +226,7 @@ def cmd_run(args, files=None):
     from pathlib import Path
 
     from .errors import Interrupted, SimulationError
+    from .problem import iou_text
     from .run import run_scene
 
     scene = args.loaded if files else _scene(args)
@@ -248,7 +249,7 @@ def cmd_run(args, files=None):
         return stop.exit_code()
     if args.quiet:
         print(f"{scene.name}: loss {summary['loss_initial']:.6e} -> {summary['loss_final']:.6e}, "
-              f"iou {summary['iou']:.3f}")
+              f"iou {iou_text(summary['iou'])}")
     return 0
 
 

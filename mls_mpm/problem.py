@@ -24,6 +24,7 @@ from . import shapes
 from .scene_keys import toml_text
 
 EMPTY = 1e-6  # a target node is empty where its mass is at most EMPTY times the grid's largest
+OCCUPIED = 0.1  # a node is occupied (iou) where it holds more than this fraction of the rest node mass
 WORD = 8  # bytes of a float64 entry
 PARTICLE_WORDS = {2: 2 * (2 + 3), 3: 2 * (3 + 3)}  # float64 words per sampled particle, by dim: x (dim) and RGB (3),
 # chunks and their concatenation
@@ -53,7 +54,7 @@ def rest_node_mass(cfg, res: int) -> float:
     return cfg.density / res ** cfg.dim
 
 
-def occupied(mass_grid, rest_node_mass, frac=0.1) -> np.ndarray:
+def occupied(mass_grid, rest_node_mass, frac=OCCUPIED) -> np.ndarray:
     """Bool grid of nodes holding more than frac of the rest node mass (the occupancy iou counts, 2D and 3D)."""
     return np.asarray(mass_grid) > frac * rest_node_mass
 
@@ -63,6 +64,22 @@ def iou(a, b) -> float:
     a, b = np.asarray(a, bool), np.asarray(b, bool)
     union = np.count_nonzero(a | b)
     return 1.0 if union == 0 else np.count_nonzero(a & b) / union
+
+
+def target_iou(mass, target, rest) -> float | None:
+    """iou of the occupied nodes of a run's final mass grid and of its target (`occupied`), or None when no target
+    node is occupied: a target whose mass (the body's, spread over its area) lies below OCCUPIED of the rest node
+    mass everywhere has no region to compare with, and an empty body would read 1."""
+    aim = occupied(target, rest)
+    return iou(occupied(mass, rest), aim) if aim.any() else None
+
+
+def iou_text(value) -> str:
+    """target_iou for a line of output: 3 decimals, or why there is none."""
+    if value is None:
+        return (f"n/a (no target node holds {OCCUPIED:g} of the rest node mass: the target is too thin for the "
+                "body's mass)")
+    return f"{value:.3f}"
 
 
 def empty(target) -> np.ndarray:

@@ -163,7 +163,7 @@ def _run(scene, prob, sim, out, resume, emit, should_stop, render, t0):
         except Interrupted:
             emit(f"rendering interrupted: the result is saved in {out}; `mls-mpm render {out}` renders it")
             return {**summary, "interrupted": True, "render_interrupted": True}
-    emit(f"loss {summary['loss_initial']:.6e} -> {summary['loss_final']:.6e}, iou {summary['iou']:.3f}, "
+    emit(f"loss {summary['loss_initial']:.6e} -> {summary['loss_final']:.6e}, iou {problems.iou_text(summary['iou'])}, "
          f"mass outside target {summary['mass_outside_target']:.3f}, {wall:.1f} s; results in {out}")
     return summary
 
@@ -198,7 +198,7 @@ def _finish(scene, prob, sim, done, starts, out, wall, emit):
         "scene": scene.name,
         "loss_initial": done[0].loss_start if done[0].loss_start is not None else done[0].losses[0],
         "loss_final": done[-1].losses[-1],
-        "iou": problems.iou(problems.occupied(mass, rest), problems.occupied(target, rest)),
+        "iou": problems.target_iou(mass, target, rest),
         "mass_outside_target": problems.mass_outside(mass, target),
         "mass_error": problems.mass_error(mass, target),
         "iterations": sum(r.iterations for r in done),

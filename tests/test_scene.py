@@ -12,8 +12,8 @@ from PIL import Image
 from mls_mpm import ColorLoss, MassLoss, OTLoss, PositionLoss
 from mls_mpm.images import splat_grid
 from mls_mpm.memory import loss_grid_shapes
-from mls_mpm.problem import (build, color_error, iou, loss_grids, mass_error, mass_outside, occupied,
-                             rest_node_mass)
+from mls_mpm.problem import (build, color_error, iou, iou_text, loss_grids, mass_error, mass_outside, occupied,
+                             rest_node_mass, target_iou)
 from mls_mpm.scene import SceneError, load_scene
 from mls_mpm.scene_keys import SPEC, toml_text, parse_override
 
@@ -553,6 +553,20 @@ def test_metrics_on_small_grids():
     target = np.array([[2.0, 0.0], [1.0, 0.0]])
     assert mass_outside(mass, target) == pytest.approx(0.75)
     assert occupied(mass, 10.0, frac=0.2).tolist() == [[False, True], [False, False]]
+
+
+def test_target_iou_is_none_where_no_target_node_is_occupied():
+    """A run's iou compares occupied nodes (above 0.1 of the rest node mass); a target whose mass lies below that
+    everywhere (a body's mass spread over a much larger area) has nothing to compare with: None, printed "n/a",
+    not the 1.0 that two empty grids give (an empty body would read perfect)."""
+    rest = 10.0
+    mass = np.array([[0.5, 3.0], [0.0, 0.0]])  # one node occupied
+    target = np.array([[2.0, 2.0], [0.5, 0.0]])  # two
+    assert target_iou(mass, target, rest) == pytest.approx(0.5) == iou(occupied(mass, rest), occupied(target, rest))
+    thin = np.full((2, 2), 0.9)  # every node below 0.1 * rest
+    assert target_iou(mass, thin, rest) is None and target_iou(0.0 * mass, thin, rest) is None
+    assert iou_text(None).startswith("n/a (no target node holds 0.1 of the rest node mass")
+    assert iou_text(0.5) == "0.500"
 
 
 def test_mass_error_and_color_error_on_small_grids():

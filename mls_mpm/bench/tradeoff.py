@@ -118,7 +118,8 @@ def bench_tradeoff(scene_path, out=None, quick=False, emit=print, max_seconds=No
                    "status": status}
             if summary:
                 row.update(loss_ratio=f"{summary['loss_final'] / summary['loss_initial']:.6g}",
-                           iou=f"{summary['iou']:.4f}", mass_outside_target=f"{summary['mass_outside_target']:.4f}",
+                           iou="" if summary["iou"] is None else f"{summary['iou']:.4f}",
+                           mass_outside_target=f"{summary['mass_outside_target']:.4f}",
                            iterations=summary["iterations"], converged=summary["converged"])
             done[name] = row
             _write_csv(table, [done[n] for n, _, _ in plan if n in done])
