@@ -276,7 +276,7 @@ def cmd_morph(args):
     args.loaded = dataclasses.replace(scene, path=(out / "scene.toml").resolve())
     args.out = str(out)
     if not args.quiet:
-        print(choice.line(args.quality), flush=True)
+        print("\n".join((choice.line(args.quality),) + choice.notes), flush=True)
     return cmd_run(args, files={"scene.toml": choice.text})
 
 

@@ -40,6 +40,7 @@ from . import shapes
 from .errors import UserError
 from .images import ImageError, check_image, load_image, material, sample_particles, splat_grid
 from .meshes import MeshError, is_mesh_path
+from .problem import OCCUPIED
 from .losses import COLOR_EMPTY, OT_BLUR
 from .ot import sinkhorn_divergence
 from .scene_keys import NAME_MAX, parse_override, toml_text, valid_name
@@ -54,6 +55,9 @@ DT = 1.0 / 120.0
 STRIDE = 10
 COLOR_SHARE = 0.05  # a colour region holds at least this fraction of an image's material pixels
 COLOR_LEVELS = 4  # levels per channel when colours are counted
+FEW_PARTICLES = 50  # an INITIAL sampled into fewer particles than this barely deforms: choose notes it
+AREA_RATIO = 4.0  # target / initial area (3D: volume) beyond which, or below whose inverse, choose notes the change
+# of density the body's fixed mass must take (the quality suite's pairs go to 3 and 1/3 and reach iou >= 0.9)
 
 
 @dataclass(frozen=True)
@@ -97,6 +101,7 @@ class Choice:
     loss: str
     shift: tuple = (0.0, 0.0)  # the target's move onto the body's centre of mass
     rounds: int = 1
+    notes: tuple = ()  # lines on shapes whose sizes the morph cannot serve well (size_notes)
 
     def line(self, q: str) -> str:
         moved = (f"target moved by ({', '.join(f'{v:+.3f}' for v in self.shift)}) onto the body's centre of mass "
@@ -262,7 +267,32 @@ def choose(initial, target, quality="default", loss="auto", seconds=None, sets=(
     text = _toml(sections, quality, kind)
     rounds = sections["optimize"].get("rounds", 1)  # a bad --set value: load_scene says so
     return Choice(text, sections["scene"]["name"], distance, speed, steps, kind, tuple(shift),
-                  rounds if isinstance(rounds, int) and not isinstance(rounds, bool) else 1)
+                  rounds if isinstance(rounds, int) and not isinstance(rounds, bool) else 1,
+                  size_notes(initial, target, len(x0), len(xt), n, dim))
+
+
+def size_notes(initial, target, n_initial, n_target, n_grid, dim) -> tuple:
+    """Notes on a pair the morph will run but cannot serve well, from the particle counts of the two shapes sampled
+    at one spacing (so in proportion to their areas, or volumes in 3D): an INITIAL of fewer than FEW_PARTICLES, and
+    a TARGET more than AREA_RATIO times larger or smaller. The body's mass is fixed (the target grid holds the same
+    mass), so a larger target is reached only at a lower density and a smaller one by compressing the body."""
+    what = "area" if dim == 2 else "volume"
+    grid = "x".join([str(n_grid)] * dim)
+    counts = f"{n_target} against {n_initial} particles at one spacing"
+    notes = []
+    if n_initial < FEW_PARTICLES:
+        notes.append(f"note: INITIAL {initial} gives only {n_initial} particles on the {grid} grid: a body this small "
+                     "can barely deform; draw it larger, or use a finer --set sim.n_grid")
+    ratio = n_target / n_initial
+    if ratio > AREA_RATIO:
+        notes.append(f"note: TARGET {target} has {ratio:.3g}x the {what} of INITIAL ({counts}): the body keeps its "
+                     f"mass, so it can cover the target only at 1/{ratio:.3g} of its density (iou counts nodes above "
+                     f"{OCCUPIED:g} of it); shapes of similar {what} morph more faithfully")
+    elif ratio < 1.0 / AREA_RATIO:
+        notes.append(f"note: TARGET {target} has 1/{1.0 / ratio:.3g} of the {what} of INITIAL ({counts}): the body "
+                     f"would have to compress {1.0 / ratio:.3g}x, which its elastic material resists, so expect mass "
+                     f"outside the target; shapes of similar {what} morph more faithfully")
+    return tuple(notes)
 
 
 def _weight(value) -> float:

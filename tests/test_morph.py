@@ -275,3 +275,40 @@ def test_a_tiny_budget_ends_the_morph_with_its_result(tmp_path):
     assert any(BUDGET_REASON in r for r in summary["stop_reason"]), summary["stop_reason"]
     assert summary["converged"] is False and summary["iterations"] < 30
     assert (out / "result.npz").is_file() and (out / "scene.toml").is_file()
+
+
+def test_size_notes_name_a_tiny_body_and_a_target_of_another_size(tmp_path):
+    """choose notes an INITIAL of fewer than FEW_PARTICLES particles, and a TARGET more than AREA_RATIO times larger
+    or smaller (particle counts at one spacing, so areas); a pair of similar sizes gets no note."""
+    dot = disk_image(tmp_path / "dot.png", (32, 32), radius=1.5)
+    small = disk_image(tmp_path / "small.png", (32, 32), radius=8)
+    big = disk_image(tmp_path / "big.png", (32, 32), radius=24)
+    assert morph.choose(small, disk_image(tmp_path / "like.png", (30, 34), radius=10), "fast").notes == ()
+    notes = morph.choose(dot, big, "fast").notes
+    assert len(notes) == 2
+    assert notes[0].startswith(f"note: INITIAL {dot} gives only ") and "particles on the 32x32 grid" in notes[0]
+    assert notes[1].startswith(f"note: TARGET {big} has ") and "x the area of INITIAL" in notes[1]
+    larger = morph.choose(small, big, "fast").notes
+    assert len(larger) == 1 and "can cover the target only at 1/" in larger[0]
+    smaller = morph.choose(big, small, "fast").notes
+    assert len(smaller) == 1 and smaller[0].startswith(f"note: TARGET {small} has 1/") and "compress" in smaller[0]
+    # the ratio in the note is that of the particle counts it gives (target / initial)
+    n_target, n_initial = (int(t) for t in larger[0].split("(")[1].split(" particles")[0].split(" against "))
+    assert n_target > morph.AREA_RATIO * n_initial >= morph.AREA_RATIO * morph.FEW_PARTICLES
+    assert f"has {n_target / n_initial:.3g}x the area" in larger[0]
+
+
+def test_a_target_too_thin_to_occupy_reports_no_iou(tmp_path, capsys):
+    """A dot morphed toward a disk of ~100x its area: the notes are printed before the run, and since no target
+    node reaches 0.1 of the rest node mass, the iou is None in summary.json and "n/a" in the last line."""
+    dot = disk_image(tmp_path / "dot.png", (32, 32), radius=1.5)
+    big = disk_image(tmp_path / "big.png", (32, 32), radius=24)
+    out = tmp_path / "m"
+    fresh_taichi()
+    options = [o for o in tiny_run() if o != "--quiet"]
+    assert main(["morph", str(dot), str(big), "--out", str(out), *options]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    k = next(i for i, line in enumerate(lines) if line.startswith("morph (fast): "))
+    assert lines[k + 1].startswith("note: INITIAL ") and lines[k + 2].startswith("note: TARGET ")
+    assert json.loads((out / "summary.json").read_text())["iou"] is None
+    assert ", iou n/a (no target node holds 0.1 of the rest node mass" in lines[-1]
