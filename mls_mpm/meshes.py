@@ -49,7 +49,7 @@ def load_mesh(path, repair=False):
     if not mesh.is_watertight:
         if not repair:
             raise MeshError(f"{path}: not watertight: trimesh reports {_openness(mesh)}; fix the mesh, or set "
-                            "scene.repair = true to try trimesh's fill_holes")
+                            "scene.repair = true (mls-mpm morph: --set scene.repair=true) to try trimesh's fill_holes")
         before = _openness(mesh)
         mesh.merge_vertices()
         mesh.update_faces(mesh.nondegenerate_faces())

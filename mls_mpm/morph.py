@@ -128,13 +128,14 @@ def is_3d(text) -> bool:
     return str(text).startswith(("shape:", "extrude:")) or is_mesh_path(text)
 
 
-def _shape(text, what):
-    """(canonical text with absolute paths, Solid) of a 3D morph input; paths relative to the working directory."""
+def _shape(text, what, repair=False):
+    """(canonical text with absolute paths, Solid) of a 3D morph input; paths relative to the working directory.
+    repair: `--set scene.repair=true`, trimesh's fill_holes on a mesh that is not watertight."""
     try:
         kind, body, params = shapes.parse(text)
         if kind != "shape":
             body = Path(body).expanduser().resolve()
-        return shapes.text_of(kind, body, params), shapes.solid(shapes.text_of(kind, body, params))
+        return shapes.text_of(kind, body, params), shapes.solid(shapes.text_of(kind, body, params), repair)
     except (ImageError, MeshError, shapes.ShapeError) as e:
         raise MorphError(f"{what} {text}: expected a 3D shape ({e})") from None
 
@@ -204,23 +205,24 @@ def choose(initial, target, quality="default", loss="auto", seconds=None, sets=(
     if quality not in QUALITIES:
         raise MorphError(f"--quality {quality}: expected one of {', '.join(QUALITIES)}")
     q = (QUALITIES_3D if dim == 3 else QUALITIES)[quality]
+    given = _overrides(sets)
     if dim == 3:
-        (p0, shape0), (pt, shapet) = _shape(initial, "INITIAL"), _shape(target, "TARGET")
+        repair = given.get(("scene", "repair")) is True  # a bad value: load_scene says so
+        (p0, shape0), (pt, shapet) = _shape(initial, "INITIAL", repair), _shape(target, "TARGET", repair)
     else:
         (p0, rgba0), (pt, rgbat) = _image(initial, "INITIAL"), _image(target, "TARGET")
-    given = _overrides(sets)
     n = given.get(("sim", "n_grid"), q.n_grid)
     n = n if isinstance(n, int) and not isinstance(n, bool) and n >= 2 else q.n_grid  # a bad one: load_scene says so
     ppc = given.get(("sim", "particles_per_cell"), q.particles_per_cell)
     ppc = ppc if isinstance(ppc, int) and 1 <= ppc <= 1024 else q.particles_per_cell
-    try:
-        if dim == 3:
-            (x0, c0), (xt, ct) = shapes.sample(shape0, n, ppc), shapes.sample(shapet, n, ppc)
-        else:
-            (x0, c0), (xt, ct) = sample_particles(rgba0, n, ppc), sample_particles(rgbat, n, ppc)
-    except (ImageError, shapes.ShapeError) as e:
-        raise MorphError(f"INITIAL {initial} or TARGET {target}: {e}; use larger shapes or a finer --set "
-                         "sim.n_grid") from None
+    sampled = []
+    for what, text, shape in (("INITIAL", initial, shape0 if dim == 3 else rgba0),
+                              ("TARGET", target, shapet if dim == 3 else rgbat)):
+        try:
+            sampled.append(shapes.sample(shape, n, ppc) if dim == 3 else sample_particles(shape, n, ppc))
+        except (ImageError, shapes.ShapeError) as e:
+            raise MorphError(f"{what} {text}: {e}; use a larger shape or a finer --set sim.n_grid") from None
+    (x0, c0), (xt, ct) = sampled
     shift = np.zeros(dim) if keep_position else centring_shift(x0, xt, n)
     xt = xt + shift
     regions = (colour_count(c0), colour_count(ct)) if dim == 3 else (color_regions(rgba0), color_regions(rgbat))

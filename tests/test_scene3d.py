@@ -229,6 +229,25 @@ def test_morph_refuses_bad_3d_input_in_one_line(capsys, tmp_path, initial, patte
     assert re.search(pattern, message), message
 
 
+def test_morph_names_the_shape_without_particles_and_repairs_a_mesh_when_asked(capsys, tmp_path):
+    """A shape too small for one particle is named alone (TARGET here, not "INITIAL or TARGET"); a mesh that is not
+    watertight is refused with the --set that repairs it, and with that --set the morph's scene repairs it."""
+    import re
+    from mls_mpm import morph
+    tiny = "shape:sphere?r=0.001&cx=0.51&cy=0.52&cz=0.53"
+    message = refused(capsys, tmp_path, "morph", "shape:sphere", tiny, "--out", tmp_path / "m", "--no-render")
+    assert re.search(r"^TARGET shape:sphere\?r=0\.001.*: no particle landed inside the shape; it is smaller than "
+                     r"the particle spacing \(0\.0312\) at n_grid 32; use a larger shape or a finer --set "
+                     r"sim\.n_grid$", message), message
+    open_mesh(tmp_path / "open.obj")
+    message = refused(capsys, tmp_path, "morph", tmp_path / "open.obj", "shape:sphere", "--out", tmp_path / "m",
+                      "--no-render")
+    assert "fix the mesh, or set scene.repair = true (mls-mpm morph: --set scene.repair=true)" in message, message
+    choice = morph.choose(str(tmp_path / "open.obj"), "shape:sphere", "fast", sets=["scene.repair=true"])
+    p = build(load_scene(write(tmp_path, choice.text, "scene.toml")))
+    assert len(p.notes) == 1 and "repaired with trimesh's fill_holes" in p.notes[0] and len(p.x0) > 0
+
+
 @pytest.mark.parametrize("initial, target, dim, pattern", [
     (IMAGES / "circle.png", IMAGES / "torus.png", "3",
      r"INITIAL .*circle\.png: expected a 3D shape \(.*circle\.png: expected a mesh \(\.obj \.stl \.ply \.off \.glb\), "
