@@ -56,6 +56,8 @@ STRIDE = 10
 COLOR_SHARE = 0.05  # a colour region holds at least this fraction of an image's material pixels
 COLOR_LEVELS = 4  # levels per channel when colours are counted
 FEW_PARTICLES = 50  # an INITIAL sampled into fewer particles than this barely deforms: choose notes it
+FRAMED = 0.9  # an image whose border is material (not white) for more than this fraction looks like a mask drawn
+# the other way round (a white shape on black): choose notes it
 AREA_RATIO = 4.0  # target / initial area (3D: volume) beyond which, or below whose inverse, choose notes the change
 # of density the body's fixed mass must take (the quality suite's pairs go to 3 and 1/3 and reach iou >= 0.9)
 
@@ -270,7 +272,22 @@ def choose(initial, target, quality="default", loss="auto", seconds=None, sets=(
     rounds = sections["optimize"].get("rounds", 1)  # a bad --set value: load_scene says so
     return Choice(text, sections["scene"]["name"], distance, speed, steps, kind, tuple(shift),
                   rounds if isinstance(rounds, int) and not isinstance(rounds, bool) else 1,
-                  size_notes(initial, target, len(x0), len(xt), n, dim))
+                  (() if dim == 3 else framed_notes(initial, rgba0, target, rgbat))
+                  + size_notes(initial, target, len(x0), len(xt), n, dim))
+
+
+def framed_notes(initial, rgba0, target, rgbat) -> tuple:
+    """A note for each image whose border is nearly all material (more than FRAMED of its border pixels): its shape
+    is then the image less its white part, which is what a white shape on black (a mask) gives."""
+    notes = []
+    for what, path, rgba in (("INITIAL", initial, rgba0), ("TARGET", target, rgbat)):
+        m = material(rgba)
+        border = np.concatenate([m[0], m[-1], m[1:-1, 0], m[1:-1, -1]])
+        if border.mean() > FRAMED:
+            notes.append(f"note: {what} {path}: {border.mean():.0%} of its border is material (opaque, not white), "
+                         f"so the shape is everything but its white part ({m.mean():.0%} of the image); if the "
+                         "shape is the white part (a white-on-black mask), invert the image")
+    return tuple(notes)
 
 
 def size_notes(initial, target, n_initial, n_target, n_grid, dim) -> tuple:

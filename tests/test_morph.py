@@ -312,3 +312,17 @@ def test_a_target_too_thin_to_occupy_reports_no_iou(tmp_path, capsys):
     assert lines[k + 1].startswith("note: INITIAL ") and lines[k + 2].startswith("note: TARGET ")
     assert json.loads((out / "summary.json").read_text())["iou"] is None
     assert ", iou n/a (no target node holds 0.1 of the rest node mass" in lines[-1]
+
+
+def test_a_white_on_black_mask_gets_a_note(tmp_path):
+    """An image whose border is material (opaque, not white) is taken as everything but its white part, which a
+    white shape on black is not meant as: choose notes it (and the same shape drawn black on white gets none)."""
+    mask = np.zeros((64, 64, 3), np.uint8)
+    yy, xx = np.mgrid[:64, :64] + 0.5
+    mask[(xx - 32) ** 2 + (yy - 32) ** 2 < 20 ** 2] = 255
+    Image.fromarray(mask).save(tmp_path / "mask.png")
+    disk = disk_image(tmp_path / "disk.png", (32, 32), radius=20)
+    notes = morph.choose(tmp_path / "mask.png", disk, "fast").notes
+    assert len(notes) == 1 and notes[0].startswith(f"note: INITIAL {tmp_path / 'mask.png'}: 100% of its border is "
+                                                   "material") and "invert the image" in notes[0]
+    assert morph.choose(disk, disk, "fast").notes == ()
