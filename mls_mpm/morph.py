@@ -281,12 +281,11 @@ def framed_notes(initial, rgba0, target, rgbat) -> tuple:
     is then the image less its white part, which is what a white shape on black (a mask) gives."""
     notes = []
     for what, path, rgba in (("INITIAL", initial, rgba0), ("TARGET", target, rgbat)):
-        m = material(rgba)
-        border = np.concatenate([m[0], m[-1], m[1:-1, 0], m[1:-1, -1]])
+        border = material(np.concatenate([rgba[0], rgba[-1], rgba[1:-1, 0], rgba[1:-1, -1]]))
         if border.mean() > FRAMED:
             notes.append(f"note: {what} {path}: {border.mean():.0%} of its border is material (opaque, not white), "
-                         f"so the shape is everything but its white part ({m.mean():.0%} of the image); if the "
-                         "shape is the white part (a white-on-black mask), invert the image")
+                         f"so the shape is everything but its white part ({material(rgba).mean():.0%} of the "
+                         "image); if the shape is the white part (a white-on-black mask), invert the image")
     return tuple(notes)
 
 
