@@ -103,7 +103,7 @@ class Choice:
     loss: str
     shift: tuple = (0.0, 0.0)  # the target's move onto the body's centre of mass
     rounds: int = 1
-    notes: tuple = ()  # lines on shapes whose sizes the morph cannot serve well (size_notes)
+    notes: tuple = ()  # lines on inputs the morph cannot serve well (framed_notes, size_notes)
 
     def line(self, q: str) -> str:
         moved = (f"target moved by ({', '.join(f'{v:+.3f}' for v in self.shift)}) onto the body's centre of mass "
