@@ -276,7 +276,9 @@ def cmd_morph(args):
     args.loaded = dataclasses.replace(scene, path=(out / "scene.toml").resolve())
     args.out = str(out)
     if not args.quiet:
-        print("\n".join((choice.line(args.quality),) + choice.notes), flush=True)
+        print(choice.line(args.quality), flush=True)
+    for note in choice.notes:  # warnings: on stderr, --quiet or not
+        print(f"mls-mpm: {note}", file=sys.stderr, flush=True)
     return cmd_run(args, files={"scene.toml": choice.text})
 
 

@@ -299,19 +299,23 @@ def test_size_notes_name_a_tiny_body_and_a_target_of_another_size(tmp_path):
 
 
 def test_a_target_too_thin_to_occupy_reports_no_iou(tmp_path, capsys):
-    """A dot morphed toward a disk of ~100x its area: the notes are printed before the run, and since no target
-    node reaches 0.1 of the rest node mass, the iou is None in summary.json and "n/a" in the last line."""
+    """A dot morphed toward a disk of ~100x its area: the notes go to stderr before the run, --quiet or not, and
+    since no target node reaches 0.1 of the rest node mass, the iou is None in summary.json and "n/a" in the last
+    line."""
     dot = disk_image(tmp_path / "dot.png", (32, 32), radius=1.5)
     big = disk_image(tmp_path / "big.png", (32, 32), radius=24)
-    out = tmp_path / "m"
-    fresh_taichi()
-    options = [o for o in tiny_run() if o != "--quiet"]
-    assert main(["morph", str(dot), str(big), "--out", str(out), *options]) == 0
-    lines = capsys.readouterr().out.splitlines()
-    k = next(i for i, line in enumerate(lines) if line.startswith("morph (fast): "))
-    assert lines[k + 1].startswith("note: INITIAL ") and lines[k + 2].startswith("note: TARGET ")
-    assert json.loads((out / "summary.json").read_text())["iou"] is None
-    assert ", iou n/a (no target node holds 0.1 of the rest node mass" in lines[-1]
+    for quiet in (False, True):
+        out = tmp_path / f"m{quiet}"
+        fresh_taichi()
+        options = [o for o in tiny_run() if quiet or o != "--quiet"]
+        assert main(["morph", str(dot), str(big), "--out", str(out), *options]) == 0
+        captured = capsys.readouterr()
+        notes = [line for line in captured.err.splitlines() if line.startswith("mls-mpm: note: ")]
+        assert len(notes) == 2 and notes[0].startswith("mls-mpm: note: INITIAL ") and " TARGET " in notes[1]
+        assert json.loads((out / "summary.json").read_text())["iou"] is None
+        last = captured.out.splitlines()[-1]
+        assert "iou n/a (no target node holds 0.1 of the rest node mass" in last
+        assert last.startswith("morph_dot_to_big: ") == quiet and "note:" not in captured.out
 
 
 def test_a_white_on_black_mask_gets_a_note(tmp_path):
