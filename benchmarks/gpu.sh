@@ -93,7 +93,7 @@ step 60 "$OUT/scenes.txt" "${MLS[@]}" run scenes/circle_to_torus.toml --arch "$A
     --arch "$ARCH" --no-render --out /tmp/gpu_runs/s3d_warm "${SCENE3D[@]}"
 for d in /tmp/gpu_runs/*/; do
     [ -f "$d/summary.json" ] && "$PY" -c "import json, sys; s = json.load(open(sys.argv[1] + 'summary.json')); \
-print(sys.argv[1], s['backend'], 'loss', s['loss_initial'], '->', s['loss_final'], 'iou', round(s['iou'], 3), \
+print(sys.argv[1], s['backend'], 'loss', s['loss_initial'], '->', s['loss_final'], 'iou', s['iou'] and round(s['iou'], 3), \
 'wall', round(s['wall_seconds'], 1), 's')" "$d"
 done >>"$OUT/scenes.txt"
 cat "$OUT"/gpu_gradient_*.md "$OUT/gpu_scale.md" 2>/dev/null; tail -4 "$OUT/scenes.txt"
