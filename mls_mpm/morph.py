@@ -208,26 +208,27 @@ def choose(initial, target, quality="default", loss="auto", seconds=None, sets=(
         raise MorphError(f"--quality {quality}: expected one of {', '.join(QUALITIES)}")
     q = (QUALITIES_3D if dim == 3 else QUALITIES)[quality]
     given = _overrides(sets)
-    if dim == 3:
+    if dim == 3:  # src: a Solid (3D) or an RGBA image (2D), and how it is sampled
         repair = given.get(("scene", "repair")) is True  # a bad value: load_scene says so
-        (p0, shape0), (pt, shapet) = _shape(initial, "INITIAL", repair), _shape(target, "TARGET", repair)
+        (p0, src0), (pt, srct) = _shape(initial, "INITIAL", repair), _shape(target, "TARGET", repair)
+        sample = shapes.sample
     else:
-        (p0, rgba0), (pt, rgbat) = _image(initial, "INITIAL"), _image(target, "TARGET")
+        (p0, src0), (pt, srct) = _image(initial, "INITIAL"), _image(target, "TARGET")
+        sample = sample_particles
     n = given.get(("sim", "n_grid"), q.n_grid)
     n = n if isinstance(n, int) and not isinstance(n, bool) and n >= 2 else q.n_grid  # a bad one: load_scene says so
     ppc = given.get(("sim", "particles_per_cell"), q.particles_per_cell)
     ppc = ppc if isinstance(ppc, int) and 1 <= ppc <= 1024 else q.particles_per_cell
     sampled = []
-    for what, text, shape in (("INITIAL", initial, shape0 if dim == 3 else rgba0),
-                              ("TARGET", target, shapet if dim == 3 else rgbat)):
+    for what, text, src in (("INITIAL", initial, src0), ("TARGET", target, srct)):
         try:
-            sampled.append(shapes.sample(shape, n, ppc) if dim == 3 else sample_particles(shape, n, ppc))
+            sampled.append(sample(src, n, ppc))
         except (ImageError, shapes.ShapeError) as e:
             raise MorphError(f"{what} {text}: {e}; use a larger shape or a finer --set sim.n_grid") from None
     (x0, c0), (xt, ct) = sampled
     shift = np.zeros(dim) if keep_position else centring_shift(x0, xt, n)
     xt = xt + shift
-    regions = (colour_count(c0), colour_count(ct)) if dim == 3 else (color_regions(rgba0), color_regions(rgbat))
+    regions = (colour_count(c0), colour_count(ct)) if dim == 3 else (color_regions(src0), color_regions(srct))
     use_color = loss == "color" or (loss == "auto" and min(regions) > 1)
     dx = 1.0 / n
     distance = travel_distance(x0, xt)
@@ -272,7 +273,7 @@ def choose(initial, target, quality="default", loss="auto", seconds=None, sets=(
     rounds = sections["optimize"].get("rounds", 1)  # a bad --set value: load_scene says so
     return Choice(text, sections["scene"]["name"], distance, speed, steps, kind, tuple(shift),
                   rounds if isinstance(rounds, int) and not isinstance(rounds, bool) else 1,
-                  (() if dim == 3 else framed_notes(initial, rgba0, target, rgbat))
+                  (() if dim == 3 else framed_notes(initial, src0, target, srct))
                   + size_notes(initial, target, len(x0), len(xt), n, dim))
 
 
