@@ -14,7 +14,8 @@
 #    tests/test_gpu.py (the tiny scene on CUDA against the CPU, `mls-mpm check` in 2D; the 3D check in a process of
 #    its own), and the first runs of the README's 2D and 3D scenes (compile included).
 # 2. One after another on a quiet GPU: `mls-mpm bench gradient --arch gpu`, 2D then 3D (gpu_gradient_2d.md,
-#    gpu_gradient_3d.md), the larger cases (gpu_scale.md), the two scenes again with the cache warm (scenes.txt).
+#    gpu_gradient_3d.md), the larger cases in random and cell order, then Taichi's kernel profile of the 3D one
+#    (gpu_scale.md), the two scenes again with the cache warm (scenes.txt).
 #
 # It writes 8 files into $OUT, the most the device tool brings back: tee nothing else there. On an H200 with 16 CPU
 # cores (2026-12-04) it took 364 s (phase 1 about 160 s), plus about 70 s to start the machine and copy the tree
@@ -86,7 +87,8 @@ echo "== phase 2 (one after another): timings"
 step 90 "$OUT/bench.txt" "${MLS[@]}" bench gradient --arch "$ARCH" --dim 2 --repeats 2 --out "$OUT/gpu_gradient_2d.md" $Q
 [ -z "$QUICK" ] && step 150 "$OUT/bench.txt" "${MLS[@]}" bench gradient --arch "$ARCH" --dim 3 --repeats 2 \
     --out "$OUT/gpu_gradient_3d.md"
-step 60 "$OUT/gpu_scale.md" "$PY" benchmarks/gpu_cases.py scale --arch "$ARCH" $Q
+step 120 "$OUT/gpu_scale.md" "$PY" benchmarks/gpu_cases.py scale --arch "$ARCH" $Q
+step 60 "$OUT/gpu_scale.md" "$PY" benchmarks/gpu_cases.py profile --arch "$ARCH" $Q
 step 60 "$OUT/scenes.txt" "${MLS[@]}" run scenes/circle_to_torus.toml --arch "$ARCH" --no-render \
     --out /tmp/gpu_runs/s2d_warm "${SCENE2D[@]}"
 [ -f /tmp/gpu_runs/s3d_cold/summary.json ] && step 90 "$OUT/scenes.txt" "${MLS[@]}" run scenes/sphere_to_torus_3d.toml \
