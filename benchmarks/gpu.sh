@@ -18,7 +18,7 @@
 #    (gpu_scale.md), the two scenes again with the cache warm (scenes.txt).
 #
 # It writes 8 files into $OUT, the most the device tool brings back: tee nothing else there. On an H200 with 16 CPU
-# cores (2026-12-04) it took 364 s (phase 1 about 160 s), plus about 70 s to start the machine and copy the tree
+# cores (2026-12-04 17:26 UTC) it took 510 s (phase 1 about 210 s), plus about 30 s to start the machine and copy the tree
 # (Taichi's wheel is 56 MB of the 64 MiB that travels; imageio-ffmpeg's 68 MB cannot come along, so no MP4 there).
 set -u
 OUT=${OUT:-renders/gpu}

@@ -402,3 +402,22 @@ def test_loop_profile_refuses_bad_options(argv, says):
     assert res.returncode == 2
     assert says in res.stderr
     assert "Traceback" not in res.stderr
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_bench_scene_in_cell_order_holds_the_same_particles_numbered_cell_by_cell(dim):
+    """bench child scene_of(order="cell") (gpu_cases.py's sorted cases): the random case's particles, reordered so
+    that the row-major cell index never decreases; everything else as in random order."""
+    import numpy as np
+
+    from mls_mpm.bench.child import scene_of
+
+    case = dict(dim=dim, dtype="f32", n_grid=16, particles=500, steps=4)
+    cfg, x_random, _, controls = scene_of(case, 4)
+    cfg_c, x_cell, _, controls_c = scene_of(dict(case, order="cell"), 4)
+    assert cfg_c == cfg and controls_c.shape == controls.shape
+    cells = np.ravel_multi_index(tuple(np.floor(x_cell * 16).astype(int).T), (16,) * dim)
+    assert np.all(np.diff(cells) >= 0)
+    assert not np.all(np.diff(np.ravel_multi_index(tuple(np.floor(x_random * 16).astype(int).T), (16,) * dim)) >= 0)
+    np.testing.assert_array_equal(np.sort(x_cell.view([("", x_cell.dtype)] * dim), axis=0),
+                                  np.sort(x_random.view([("", x_random.dtype)] * dim), axis=0))
