@@ -1,12 +1,14 @@
 """Forward simulation (thesis section 3 and 6.1, eq 8-9, 14-21): conservation, exact motions, the fixed-corotated
 stress, and the errors the simulator and SimConfig raise."""
+import itertools
+
 import numpy as np
 import pytest
 import taichi as ti
 from scipy.linalg import polar
 
 import mls_mpm
-from conftest import blob, body, grid_velocity, random_controls, rel_err, scene_config
+from conftest import ball, blob, body, grid_velocity, random_controls, rel_err, scene_config
 from mls_mpm.material import stress
 
 pytestmark = pytest.mark.usefixtures("taichi_f64_module")
@@ -142,67 +144,73 @@ def fixed_corotated(F, mu, lam):
 
 
 def reference_step(cfg, st, F_pc):
-    """Eq 14-21 with gravity, drag and walls, written from the thesis in numpy: grid (m, v) of the step and
-    the particle state (x, v, C, F) of the next one. F_pc: the control acting at this step, or None."""
-    n, dx, inv_dx, dt, m_p = cfg.n_grid, cfg.dx, cfg.inv_dx, cfg.dt, cfg.m_p
+    """Eq 14-21 with gravity, drag and walls, written from the thesis in numpy for any dimension d: grid (m, v) of
+    the step and the particle state (x, v, C, F) of the next one. F_pc: the control acting at this step, or None."""
+    n, dx, inv_dx, dt, m_p, d = cfg.n_grid, cfg.dx, cfg.inv_dx, cfg.dt, cfg.m_p, cfg.dim
     x, v, C, F = st["x"], st["v"], st["C"], st["F"]
     Fs = F + F_pc if F_pc is not None else F  # eq 8, 14
     P = np.stack([fixed_corotated(Fp, cfg.mu, cfg.lam) for Fp in Fs])
     G = -3 * inv_dx ** 2 * dt * cfg.vol * P @ np.swapaxes(Fs, 1, 2) + m_p * C  # eq 61
     base = np.floor(x * inv_dx).astype(int) - 1
     stencil = []
-    for i in range(4):
-        for j in range(4):
-            node = base + (i, j)
-            dpos = node * dx - x  # x_i - x_p
-            N = spline(dpos[:, 0] * inv_dx) * spline(dpos[:, 1] * inv_dx)
-            stencil.append((node, dpos, N))
-    grid_m, grid_p = np.zeros((n, n)), np.zeros((n, n, 2))
+    for offset in itertools.product(range(4), repeat=d):  # the 4^d nodes around each particle
+        node = base + offset
+        dpos = node * dx - x  # x_i - x_p
+        N = np.prod(spline(dpos * inv_dx), axis=1)  # eq 2: the product of the 1D weights
+        stencil.append((tuple(node.T), dpos, N))
+    grid_m, grid_p = np.zeros((n,) * d), np.zeros((n,) * d + (d,))
     for node, dpos, N in stencil:
-        np.add.at(grid_m, (node[:, 0], node[:, 1]), N * m_p)  # eq 15
+        np.add.at(grid_m, node, N * m_p)  # eq 15
         mom = m_p * v * (1 - dt * cfg.gamma) + np.einsum("pab,pb->pa", G, dpos)  # eq 16
-        np.add.at(grid_p, (node[:, 0], node[:, 1]), N[:, None] * mom)
+        np.add.at(grid_p, node, N[:, None] * mom)
     # eq 17 + gravity's impulse, guarded at empty nodes by m_eps = 1e-20 m_p (mls_mpm/grid.py free_velocity)
     grid_v = (grid_p + grid_m[..., None] * dt * np.asarray(cfg.gravity)) / (grid_m + 1e-20 * m_p)[..., None]
-    idx = np.arange(n)
-    for d in range(2):
-        low = np.broadcast_to((idx < cfg.bound)[:, None] if d == 0 else (idx < cfg.bound)[None, :], (n, n))
-        high = np.broadcast_to((idx > n - 1 - cfg.bound)[:, None] if d == 0 else (idx > n - 1 - cfg.bound)[None, :],
-                               (n, n))
-        if cfg.boundary == "sticky":
-            grid_v[low | high] = 0.0
-        else:
-            vd = grid_v[..., d].copy()
-            grid_v[..., d] = np.where((low & (vd < 0)) | (high & (vd > 0)), 0.0, vd)
+    index = np.indices((n,) * d)  # index[a]: each node's index along axis a
+    low, high = index < cfg.bound, index > n - 1 - cfg.bound  # the wall zones, per axis
+    if cfg.boundary == "sticky":
+        grid_v[np.any(low | high, axis=0)] = 0.0
+    else:
+        into = [(low[a] & (grid_v[..., a] < 0)) | (high[a] & (grid_v[..., a] > 0)) for a in range(d)]
+        for a in range(d):
+            grid_v[..., a][into[a]] = 0.0
     v_new, C_new = np.zeros_like(v), np.zeros_like(C)
     for node, dpos, N in stencil:
-        vi = grid_v[node[:, 0], node[:, 1]]
+        vi = grid_v[node]
         v_new += N[:, None] * vi  # eq 18
         C_new += 3 * inv_dx ** 2 * N[:, None, None] * np.einsum("pa,pb->pab", vi, dpos)  # eq 19
-    F_new = (np.eye(2) + dt * C_new) @ Fs  # eq 20
+    F_new = (np.eye(d) + dt * C_new) @ Fs  # eq 20
     return grid_m, grid_v, {"x": x + dt * v_new, "v": v_new, "C": C_new, "F": F_new}  # eq 21
 
 
-@pytest.mark.parametrize("boundary, schedule", [("slip", "serial"), ("sticky", "parallel")])
-def test_step_matches_thesis_equations(boundary, schedule):
-    """Steps 0 and 10 (controls 0 and 1 act) and step 5 (no control) against reference_step, a numpy
-    transcription of eq 14-21 plus gravity, drag (gamma = 5) and walls, under both schedules (slip walls with
-    the serial one, sticky with the parallel one): rel err <= 1e-12 on grid mass and
-    velocity and on the next x, v, C, F. The body starts near the floor moving down with random C and F, so the
-    wall zone (3 cells) is hit within the first steps."""
-    cfg = scene_config(gamma=5.0, gravity=(1.5, -9.8), boundary=boundary, schedule=schedule)
-    x0 = blob(center=(0.45, 0.2), radius=0.1)
+@pytest.mark.parametrize("dim, boundary, schedule", [(2, "slip", "serial"), (2, "sticky", "parallel"),
+                                                     (3, "slip", "parallel"), (3, "sticky", "serial")])
+def test_step_matches_thesis_equations(dim, boundary, schedule):
+    """Three steps against reference_step, a numpy transcription of eq 14-21 plus gravity, drag (gamma = 5) and
+    walls, in 2D and 3D under both schedules and both walls: the first step (control 0 acts), the first step of
+    control 1 and a step between them (no control); rel err <= 1e-12 on grid mass and velocity and on the next x,
+    v, C, F. The body starts near the floor moving down with random C and F, so the wall zone (3 cells) is hit
+    within the first steps; in 3D gravity has a component along every axis."""
+    gravity = (1.5, -9.8) if dim == 2 else (1.5, -9.8, 0.7)
+    cfg = scene_config(dim=dim, gamma=5.0, gravity=gravity, boundary=boundary, schedule=schedule)
+    if dim == 2:
+        center = (0.45, 0.2)
+        x0 = blob(center=center, radius=0.1)
+    else:
+        center = (0.45, 0.27, 0.5)
+        x0 = ball(center=center, radius=0.12, particles_per_cell=1)
     rng = np.random.default_rng(12)
     N = len(x0)
     sim = make_sim(cfg, x0)
-    sim.set_initial(x0, v=rigid_velocity(x0, omega=2.0, u=(0.5, -1.5), center=(0.45, 0.2)),
-                    C=2.0 * rng.standard_normal((N, 2, 2)), F=np.eye(2) + 0.1 * rng.standard_normal((N, 2, 2)))
+    sim.set_initial(x0, v=rigid_velocity(x0, omega=2.0, u=(0.5, -1.5, 0.3), center=center),
+                    C=2.0 * rng.standard_normal((N, dim, dim)),
+                    F=np.eye(dim) + 0.1 * rng.standard_normal((N, dim, dim)))
     controls = random_controls(sim.control_shape, 0.05, seed=13)
     sim.forward(controls)
     grid_m = sim.fields.grid_m.to_numpy()
-    grid_v = {f: grid_velocity(sim, f) for f in (0, 5, 10)}  # state(f + 1) below checks the step's own v_i too
+    steps = (0, cfg.stride // 2, cfg.stride)
+    grid_v = {f: grid_velocity(sim, f) for f in steps}  # state(f + 1) below checks the step's own v_i too
     walled = 0
-    for f in (0, 5, 10):
+    for f in steps:
         k, acts = divmod(f, cfg.stride)
         m_ref, v_ref, nxt = reference_step(cfg, sim.state(f), controls[k] if acts == 0 else None)
         assert rel_err(grid_m[f], m_ref) <= 1e-12, f
@@ -212,7 +220,8 @@ def test_step_matches_thesis_equations(boundary, schedule):
             assert rel_err(got[key], nxt[key]) <= 1e-12, (f, key)
         b = cfg.bound
         wall = np.zeros(grid_m[f].shape, bool)
-        wall[:b] = wall[-b:] = wall[:, :b] = wall[:, -b:] = True
+        for a in range(dim):
+            wall[(slice(None),) * a + (slice(None, b),)] = wall[(slice(None),) * a + (slice(-b, None),)] = True
         walled += np.count_nonzero(wall & (grid_m[f] > 1e-10 * cfg.m_p))
     assert walled > 0  # the walls took part
 
