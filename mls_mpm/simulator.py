@@ -193,7 +193,7 @@ class Simulator:
                                   "cause: a forward state near a singularity or a gradient grown too large over a "
                                   "long horizon (try fewer steps, smaller controls or optimize.clip)")
         self._backward_done = True
-        return a.adj_F_pc.to_numpy().astype(np.float64)
+        return a.adj_F_pc.to_numpy(dtype=np.float64)  # cast as it is copied: one array, not an f32 one and its cast
 
     @property
     def grad_x0(self):
@@ -222,7 +222,7 @@ class Simulator:
         L = losses.evaluate(s, T)
         a = self._adjoint_state()
         evaluate_reverse(s, a, T)
-        return L, a.adj_x.to_numpy()[T % 2].astype(np.float64)
+        return L, a.adj_x.to_numpy(dtype=np.float64)[T % 2]
 
     @_live
     def state(self, n):
@@ -262,7 +262,7 @@ class Simulator:
         if not self._backward_done:
             raise RuntimeError(f"{name}: no successful backward pass (none yet, it raised, or a forward pass ran "
                                "since); call backward() after forward(controls) first")
-        return getattr(self._adjoint, field).to_numpy()[self._stop % 2].astype(np.float64)
+        return getattr(self._adjoint, field).to_numpy(dtype=np.float64)[self._stop % 2]
 
     def _adjoint_state(self):
         if self._adjoint is None:
