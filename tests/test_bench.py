@@ -393,11 +393,14 @@ def test_loop_profile_times_every_loop_of_a_step():
     assert all(float(ms) > 0 for ms in rows.values())
 
 
-@pytest.mark.parametrize("argv, says", [(["--repeats", "0"], "--repeats 0: expected an integer >= 1"),
-                                        (["--steps", "-2"], "--steps -2: expected an integer >= 1"),
-                                        (["--case", "3d"], "invalid choice: '3d'")])
-def test_loop_profile_refuses_bad_options(argv, says):
-    res = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "loop_profile.py"), *argv],
+@pytest.mark.parametrize("script, argv, says", [
+    ("loop_profile.py", ["--repeats", "0"], "--repeats 0: expected an integer >= 1"),
+    ("loop_profile.py", ["--steps", "-2"], "--steps -2: expected an integer >= 1"),
+    ("loop_profile.py", ["--case", "3d"], "invalid choice: '3d'"),
+    ("dispatch_cost.py", ["--threads", "0"], "--threads 0: expected an integer >= 1"),
+    ("dispatch_cost.py", ["--launches", "-1"], "--launches -1: expected an integer >= 1")])
+def test_profile_scripts_refuse_bad_options(script, argv, says):
+    res = subprocess.run([sys.executable, str(ROOT / "benchmarks" / script), *argv],
                          capture_output=True, text=True, cwd=ROOT)
     assert res.returncode == 2
     assert says in res.stderr
@@ -421,3 +424,20 @@ def test_bench_scene_in_cell_order_holds_the_same_particles_numbered_cell_by_cel
     assert not np.all(np.diff(np.ravel_multi_index(tuple(np.floor(x_random * 16).astype(int).T), (16,) * dim)) >= 0)
     np.testing.assert_array_equal(np.sort(x_cell.view([("", x_cell.dtype)] * dim), axis=0),
                                   np.sort(x_random.view([("", x_random.dtype)] * dim), axis=0))
+
+
+def test_dispatch_cost_times_the_same_loop_five_ways():
+    """benchmarks/dispatch_cost.py times the real G2P loop serially, as a parallel range-for, pinned to one CPU, many
+    times in one launch, and an empty parallel loop: one row each, all positive, the empty loop the cheapest."""
+    res = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "dispatch_cost.py"), "--launches", "3",
+                          "--repeats", "1"], capture_output=True, text=True, cwd=ROOT,
+                         env={**os.environ, "TI_LOG_LEVEL": "error"})
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert "G2P of 8192 particles, f32, 64^2 grid" in res.stdout
+    rows = [line.strip("|").rsplit("|", 1) for line in res.stdout.splitlines()
+            if line.startswith("| ") and not line.startswith("| loop")]
+    assert [label.strip().split(",")[0] for label, _ in rows] == [
+        "serial loop", "parallel loop", "parallel loop", "one parallel launch running 3 passes in one worker",
+        "empty parallel loop"]
+    ms = [float(v) for _, v in rows]
+    assert all(v > 0 for v in ms) and ms[-1] < min(ms[:-1])
