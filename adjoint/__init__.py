@@ -42,6 +42,10 @@ TWINS = {
         "run_parallel": "eq 47-71",
         "run_serial": "eq 47-71",
     },
+    "persistent": {
+        "run_persistent": "eq 47-71, the parallel schedule's reverse loops in one launch",
+        "persistent_pass": "eq 47-71 (run_persistent_reverse, or run_parallel_reverse if it gave up)",
+    },
 }
 
 # module -> {forward function without a twin: why}
@@ -80,6 +84,13 @@ NO_TWIN = {
         "node_residual": "differentiated inline by grid_loss_reverse (eq 41; log mass: 1 / (m_i + 1))",
         "node_penalty": "constant: grid_loss_reverse reads it (eq 72)",
         "seed_loss": "the Tape's linear stand-in for ot_loss: its derivative is the seed that ot_loss_reverse reads",
+    },
+    "persistent": {
+        "barrier": "synchronisation of the lanes' threads: the reverse pass uses the same barrier",
+        "own_nodes": "an index range (the reverse pass takes the same share)",
+        "node_of": "an index conversion (the reverse pass uses it too)",
+        "own_particles": "an index range (the reverse pass takes the same share)",
+        "lane_shares": "index ranges (the reverse pass takes the same shares)",
     },
     "step": {
         "clear_node": "zeroes an accumulator: the reverse zeroes its adjoints where it consumes them",

@@ -12,11 +12,11 @@ DTYPES = ("f32", "f64")
 ARCHS = ("cpu", "gpu", "cuda", "vulkan")
 SCHEDULES = ("auto", "serial", "parallel")
 SERIAL_BELOW = 4000  # particles + grid nodes under which "auto" runs serially on a CPU (3D, or over 2 threads)
-# The same in 2D on 2 CPU threads, where a step's loops are short and the parallel schedule's per-loop cost (waking
-# the second thread, one launch a step) weighs more: there the one serial launch measured faster (forward +
-# backward) up to 12,000 particles on 64^2 and 16,000 on 128^2 (32,384 units), the parallel one from 32,000
-# particles on 128^2 (48,384; BENCHMARKS.md, "Schedules"); in 3D (17k particles, 32^3) the parallel one, 1.6x.
-SERIAL_BELOW_2D_TWO_THREADS = 40_000
+# The same in 2D on 2 CPU threads, where a step's loops are short: with each pass of the parallel schedule in one
+# launch (mls_mpm/persistent.py) the one serial launch measured faster (forward + backward) up to 1,600 particles on
+# 64^2 (5,696 units, 1.18x), the parallel one from 4,000 on 64^2 (8,096 units, 1.22x; 1.6-1.8x from 8,000 particles;
+# BENCHMARKS.md, "One launch a pass"). With a launch per step the crossover was 40,000 units.
+SERIAL_BELOW_2D_TWO_THREADS = 7_000
 STENCIL = 4  # the cubic B-spline touches 4 nodes per axis (base = floor(x/dx) - 1)
 DIMS = (2, 3)  # the dimensions the simulator runs in
 GRAVITY = -9.8  # default gravity along y (axis 1), in 2D and 3D
@@ -86,8 +86,9 @@ class SimConfig:
     arch: "cpu", or "gpu" (CUDA, else Vulkan), "cuda", "vulkan"; runtime.ensure refuses one that cannot start.
     threads: CPU threads, at most MAX_THREADS (0: the cores this process may run on, `default_threads()`);
         Taichi is re-initialised when it runs with another count (see runtime.TaichiRuntime).
-    schedule: "parallel" launches one kernel per step with parallel loops; "serial" runs all steps in one
-        serial launch (faster for small scenes on a CPU, where launch cost dominates); "auto" picks
+    schedule: "parallel" runs parallel loops (on a CPU each pass in one launch whose threads meet at barriers,
+        mls_mpm/persistent.py, or one launch per step when other work holds the CPUs; on a GPU one launch per
+        step); "serial" runs all steps in one serial launch (faster for small scenes on a CPU); "auto" picks
         serial on a CPU with one thread or below SERIAL_BELOW particle-node units (2D on 2 threads:
         SERIAL_BELOW_2D_TWO_THREADS; see BENCHMARKS.md), else parallel.
     max_memory_gb: refuse a simulator whose preallocated fields would exceed this many GiB

@@ -58,9 +58,10 @@ def parts(cfg, n_particles, grids=(), position_loss=False, tape=False):
              copies * T * nodes * stored * w + (0 if tape else nodes * (d + node) * w)),
     ]
     lanes = 0 if tape else cfg.lanes(N)
-    if lanes:  # forward private grids (m, p) and the adjoint's (dL/dv); one step's G_p (State.G_step)
+    if lanes:  # forward private grids (m, p) and the adjoint's (dL/dv); one step's G_p (State.G_step); the barrier's
+        # three counters (State.sync, mls_mpm/persistent.py)
         out.append(Part(f"the {lanes} per-thread grids of {n}{sq} nodes", "sim.n_grid or sim.threads",
-                        lanes * nodes * (1 + 2 * d) * w + N * d * d * w))
+                        lanes * nodes * (1 + 2 * d) * w + N * d * d * w + 3 * 4))
     if grids:
         field = numpy = 0
         for res, ch, has_alpha in grids:

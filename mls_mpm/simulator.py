@@ -6,6 +6,7 @@ import math
 import numpy as np
 
 from adjoint.losses import evaluate_reverse
+from adjoint.persistent import persistent_pass_reverse
 from adjoint.state import AdjointState
 from adjoint.step import run_parallel_reverse, run_serial_reverse
 
@@ -14,11 +15,14 @@ from .config import ConfigError
 from .errors import SimulationError
 from .losses import ColorLoss, PositionLoss
 from .memory import check_memory, loss_grid_shapes
+from .persistent import persistent_pass
 from .state import FAULT_LEFT_GRID, FAULT_NON_FINITE, FAULT_NONE, State, read_step, upload_loss, write_step, write_x
 from .step import clear_grid, run_parallel, run_serial
 from .tape import tape_gradient, tape_gradients_in_child
 from .transfer import check_step
 
+
+PERSISTENT_BACKOFF = 8  # passes with a launch per step after a one-launch pass gave up (Simulator._lanes_pass)
 
 def _live(method):
     """Refuse to run a Simulator method once Taichi was re-initialised (its fields are freed)."""
@@ -85,6 +89,7 @@ class Simulator:
         self._forward_done = False  # the stored steps are those of the last forward, which succeeded
         self._backward_done = False  # the adjoints hold the last backward, which succeeded
         self._tape_state = None  # grad-enabled fields, allocated by the first gradient_tape call
+        self._persistent_wait = 0  # passes to run with launches per step before one launch a pass is tried again
         self.set_initial(x0)
 
     @property
@@ -148,6 +153,8 @@ class Simulator:
         clear_grid(s, start)
         if self._serial:
             run_serial(s, start, self.cfg.steps)
+        elif s.lanes:
+            self._lanes_pass(persistent_pass, run_parallel, s, start, self.cfg.steps)
         else:
             run_parallel(s, start, self.cfg.steps)
         check_step(s, self.cfg.steps)
@@ -182,6 +189,8 @@ class Simulator:
         evaluate_reverse(s, a, self.cfg.steps)
         if self._serial:
             run_serial_reverse(s, a, stop, self.cfg.steps)
+        elif s.lanes:
+            self._lanes_pass(persistent_pass_reverse, run_parallel_reverse, s, a, stop, self.cfg.steps)
         else:
             run_parallel_reverse(s, a, stop, self.cfg.steps)
         self._stop = stop
@@ -257,6 +266,15 @@ class Simulator:
         return grad
 
     # helpers
+    def _lanes_pass(self, persistent, parallel, *args):
+        """A pass of the parallel schedule on a CPU (lanes): in one launch (mls_mpm.persistent), unless one gave up
+        within the last PERSISTENT_BACKOFF passes (other work held the CPUs); then with a launch per step."""
+        if self._persistent_wait > 0:
+            self._persistent_wait -= 1
+            parallel(*args)
+        elif not persistent(*args):
+            self._persistent_wait = PERSISTENT_BACKOFF
+
     def _initial_adjoint(self, name, field):
         runtime.RUNTIME.check(self._generation, self._built_for)
         if not self._backward_done:

@@ -27,6 +27,7 @@ from adjoint.grid import grid_op_reverse
 from adjoint.losses import evaluate_reverse, grid_loss_reverse, ot_loss_reverse, position_loss_reverse, splat_reverse
 from adjoint.material import stress_reverse
 from adjoint.state import AdjointState, zero_step
+from adjoint.persistent import run_persistent_reverse
 from adjoint.step import run_parallel_reverse, run_serial_reverse
 from adjoint.transfer import g2p_reverse, p2g_reverse
 from conftest import max_rel_err, rel_err
@@ -34,6 +35,7 @@ from mls_mpm import ColorLoss, MassLoss, OTLoss, SimConfig, losses, ot
 from mls_mpm.grid import grid_op
 from mls_mpm.material import stress
 from mls_mpm.state import State, upload_loss
+from mls_mpm.persistent import run_persistent
 from mls_mpm.step import run_parallel, run_serial
 from mls_mpm.transfer import g2p, p2g
 
@@ -364,10 +366,13 @@ def step_pairs():
     return {"parallel": StepPair(cfg, LANES), "serial": StepPair(cfg, 0)}
 
 
-def run_step_pair(pair, f, w, upstream_nan=(), n=1):
+def run_step_pair(pair, f, w, upstream_nan=(), n=1, persistent=False):
     """Tape over steps f..f+n-1 (p2g, grid_op, g2p each) and the production reverse pass on the same inputs and
     upstream w. With n = 2 the pass crosses a step boundary: the reverse grid loop of step f + 1 recomputes the
-    grid velocity of step f that the reverse G2P of step f reads (one velocity slot).
+    grid velocity of step f that the reverse G2P of step f reads (one velocity slot). persistent (a state with
+    lanes): the passes in one launch each, run_persistent and run_persistent_reverse, done again (up to 3 times) if a
+    barrier gave up because other work held the CPUs (persistent_pass_reverse, which Simulator.backward calls, runs
+    the pass again with run_parallel_reverse instead: tests/test_persistent.py drives it).
 
     Returns the Tape's dL/d(x, v, C, F)^f and dL/dF_pc. The upstream of the particles in upstream_nan is NaN.
     """
@@ -383,28 +388,41 @@ def run_step_pair(pair, f, w, upstream_nan=(), n=1):
         particle_functional(t, w, f + n)
     tape = tape_grads(t, PARTICLE_FIELDS, f)
     tape["F_pc"] = t.F_pc.grad.to_numpy()
-    # the reverse pass reads the forward's stored states (C^{f+1} of eq 57, grid v^f), so the forward runs first
-    if s.lanes:
-        run_parallel(s, f, f + n)
-    else:
-        run_serial(s, f, f + n)
-    zero_step(s, a, f)
-    a.adj_F_pc.fill(0.0)
-    a.fault[None] = -1
-    src = (f + n) % 2
-    for name in PARTICLE_FIELDS:
-        up = np.zeros((2,) + w.np[name].shape)
-        up[src] = w.np[name]
-        up[src, list(upstream_nan)] = np.nan
-        getattr(a, "adj_" + name).from_numpy(up)
-    if s.lanes:
-        run_parallel_reverse(s, a, f, f + n)
-    else:
-        run_serial_reverse(s, a, f, f + n)
-    return tape
+    for _ in range(3 if persistent else 1):
+        # the reverse pass reads the forward's stored states (C^{f+1} of eq 57, grid v^f), so the forward runs first
+        if persistent:
+            s.sync.fill(0)
+            run_persistent(s, f, f + n)
+        elif s.lanes:
+            run_parallel(s, f, f + n)
+        else:
+            run_serial(s, f, f + n)
+        forward_gave_up = persistent and s.sync[1] != 0
+        zero_step(s, a, f)
+        a.adj_F_pc.fill(0.0)
+        a.fault[None] = -1
+        src = (f + n) % 2
+        for name in PARTICLE_FIELDS:
+            up = np.zeros((2,) + w.np[name].shape)
+            up[src] = w.np[name]
+            up[src, list(upstream_nan)] = np.nan
+            getattr(a, "adj_" + name).from_numpy(up)
+        if persistent:
+            s.sync.fill(0)
+            run_persistent_reverse(s, a, f, f + n)
+            if forward_gave_up or s.sync[1] != 0:
+                s.lane_mp.fill(0.0)
+                a.lane_adj_v.fill(0.0)
+                continue
+        elif s.lanes:
+            run_parallel_reverse(s, a, f, f + n)
+        else:
+            run_serial_reverse(s, a, f, f + n)
+        return tape
+    raise AssertionError("every one-launch pass gave up (other work held the CPUs)")
 
 
-@pytest.mark.parametrize("schedule", ["parallel", "serial"])
+@pytest.mark.parametrize("schedule", ["parallel", "persistent", "serial"])
 @pytest.mark.parametrize("f, n", [(CONTROL_STEP, 1), (PLAIN_STEP, 1), (PLAIN_STEP, 2)])
 def test_step_reverse_matches_tape(step_pairs, schedule, f, n):
     """A reverse pass of the production driver over steps f..f+n-1 vs Tape on p2g, grid_op, g2p of those steps:
@@ -412,15 +430,17 @@ def test_step_reverse_matches_tape(step_pairs, schedule, f, n):
 
     parallel: run_parallel_reverse (grid_op for v_i of step f + n - 1, then per step substep_reverse, step_loops_reverse:
     g2p_particle_reverse into LANES private grids, summed by gather_lanes_reverse in grid_node_reverse, then
-    p2g_particle_reverse and check_particle_reverse); serial: run_serial_reverse over [f, f + n).
+    p2g_particle_reverse and check_particle_reverse); persistent: the same loops, each lane's share, in one launch
+    with barriers (run_persistent, run_persistent_reverse, on the parallel pair's state); serial: run_serial_reverse
+    over [f, f + n).
     dL/d(x, v, C, F)^f and dL/dF_pc (eq 47-71); afterwards the consumed adjoints of step f + 1, dL/dv_i and the
     private grids are zero, and no fault is recorded. n = 2 also crosses the control step 2 (stride 2).
     """
-    pair = step_pairs[schedule]
+    pair = step_pairs["parallel" if schedule == "persistent" else schedule]
     rng = np.random.default_rng(300 + f + 10 * (n - 1))
     pair.randomize(rng)
     w = pair.upstream.draw(rng, list(PARTICLE_FIELDS))
-    tape = run_step_pair(pair, f, w, n=n)
+    tape = run_step_pair(pair, f, w, n=n, persistent=schedule == "persistent")
     a, dst = pair.a, f % 2
     for name in PARTICLE_FIELDS:
         got = getattr(a, "adj_" + name).to_numpy()

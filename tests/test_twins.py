@@ -11,7 +11,7 @@ import pytest
 import adjoint
 
 ROOT = Path(__file__).resolve().parents[1]
-MODULES = ("transfer", "grid", "material", "losses", "step")
+MODULES = ("transfer", "grid", "material", "losses", "step", "persistent")
 
 
 def functions(path):

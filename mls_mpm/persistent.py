@@ -1,0 +1,124 @@
+"""The parallel schedule on a CPU in one launch a pass: each thread stays in the launch from the first step to the
+last and meets the others at spin barriers between the loops of a step.
+
+Each parallel loop launched on its own wakes the other CPUs and refills their caches: on a 2-CPU virtual machine,
+whose idle CPUs halt, 0.03-0.09 ms a launch, more than a small step's loop costs (benchmarks/dispatch_cost.py,
+BENCHMARKS.md "Issue 14"). Here lane l's thread takes one task of the launch (state.LANE_TASK items, of which the
+first does the work) and runs, step after step: the stresses and the scatter of its own particles (lane_span's share)
+into its private grid, a barrier, the grid operations of its share of the nodes (summing the private grids), a
+barrier, and G2P of its own particles (the next step's first barrier orders it before the grid loop that reads what
+it scattered). The per-particle and per-node bodies are step.py's, over the same shares in the same order, so the
+states equal those of run_parallel bit for bit.
+
+A barrier needs every lane's thread running at once. When they are not (other work holds the CPUs, or fewer threads
+run than lanes), waits grow long (SLOW_SPINS, GIVE_UP_SPINS): the launch gives up, every thread leaves at its next
+barrier, and the caller runs the pass again with run_parallel, whose launches wait without spinning (persistent_pass).
+"""
+import taichi as ti
+
+from .state import LANE_TASK
+from .step import clear_grid, grid_node, run_parallel
+from .transfer import check_particle, g2p_particle, p2g_particle, particle_G
+
+# A barrier wait of more than SLOW_SPINS spins (about 0.4 ms of atomic reads on the 2-CPU machine of BENCHMARKS.md,
+# where a wait normally takes microseconds and the first one of a launch, while the other CPU wakes, up to 0.1 ms)
+# means a thread was off its CPU; SLOW_WAITS of them in one pass (other work shares the CPUs: each costs a time slice
+# of the scheduler) or one wait of GIVE_UP_SPINS (about 30 ms: fewer threads running than lanes) give up the launch.
+SLOW_SPINS = 1 << 16
+SLOW_WAITS = 8
+GIVE_UP_SPINS = 1 << 20
+
+
+@ti.func
+def barrier(s: ti.template(), target):
+    """Arrive (s.sync[0] += 1) and wait until `target` arrivals in all, or until some thread gave up (s.sync[1]);
+    whether the pass goes on. s.sync[2] counts the pass's slow waits. Atomic reads (atomic_add of 0): the compiler
+    may not hoist them out of the loop, and the seq_cst atomics order every thread's field writes before the barrier
+    against its reads after it."""
+    ti.atomic_add(s.sync[0], 1)
+    spins = 0
+    while ti.atomic_add(s.sync[0], 0) < target and ti.atomic_add(s.sync[1], 0) == 0:
+        spins += 1
+        if spins == GIVE_UP_SPINS:
+            ti.atomic_add(s.sync[1], 1)
+    if spins > SLOW_SPINS:
+        if ti.atomic_add(s.sync[2], 1) + 1 >= SLOW_WAITS:
+            ti.atomic_add(s.sync[1], 1)
+    return ti.atomic_add(s.sync[1], 0) == 0
+
+
+@ti.func
+def own_nodes(s: ti.template(), lane):
+    """Lane `lane`'s share of the nodes, in row-major order: k0..k1-1 (node_of)."""
+    nodes = s.n_grid ** s.dim
+    share = (nodes + s.lanes - 1) // s.lanes
+    k0 = ti.min(lane * share, nodes)
+    return k0, ti.min(k0 + share, nodes)
+
+
+@ti.func
+def node_of(s: ti.template(), k):
+    """Node index of row-major position k (the last axis fastest, as ti.ndrange)."""
+    I = ti.Vector.zero(ti.i32, s.dim)
+    r = k
+    for d in ti.static(range(s.dim)):
+        I[s.dim - 1 - d] = r % s.n_grid
+        r //= s.n_grid
+    return I
+
+
+@ti.func
+def own_particles(s: ti.template(), lane):
+    """Lane `lane`'s particles lo..hi-1: the share lane_span's LANE_TASK runs cover, in index order."""
+    lo = ti.min(lane * s.lane_chunk, s.n_particles)
+    return lo, ti.min(lo + s.lane_chunk, s.n_particles)
+
+
+@ti.func
+def lane_shares(s: ti.template(), item):
+    """The lane whose task item `item` opens (item % LANE_TASK == 0), its particles lo..hi-1 and its nodes k0..k1-1."""
+    lane = item // LANE_TASK
+    lo, hi = own_particles(s, lane)
+    k0, k1 = own_nodes(s, lane)
+    return lane, lo, hi, k0, k1
+
+
+@ti.kernel
+def run_persistent(s: ti.template(), f0: ti.i32, f1: ti.i32):
+    """Steps f0..f1-1 in one launch of s.lanes tasks (s.sync zero before it): step.step_loops' loops, each lane's share
+    of them, with a barrier after the scatter and after the grid loop (the stresses in the scatter loop, not in a
+    loop of their own as step_loops has them: the same values, 2x faster here in 2D)."""
+    for item in range(s.lanes * LANE_TASK):
+        if item % LANE_TASK == 0:
+            lane, lo, hi, k0, k1 = lane_shares(s, item)
+            arrived = 0
+            alive = True
+            for f in range(f0, f1):
+                if alive:
+                    for p in range(lo, hi):  # the stress inline (a loop of its own into s.G_step: 2x slower in 2D)
+                        check_particle(s, f, p, p2g_particle(s, f, p, lane, particle_G(s, f, p)))
+                    arrived += s.lanes
+                    alive = barrier(s, arrived)
+                if alive:
+                    for k in range(k0, k1):
+                        grid_node(s, f, node_of(s, k))
+                    arrived += s.lanes
+                    alive = barrier(s, arrived)
+                if alive:
+                    for p in range(lo, hi):
+                        g2p_particle(s, f, p)
+
+
+def persistent_pass(s, f0, f1):
+    """Steps f0..f1-1 of a state with lanes (the parallel schedule on a CPU) by run_persistent, or, if a barrier gave
+    up, again from f0 by run_parallel (the private grids and faults cleared first). Returns whether run_persistent
+    finished the pass."""
+    s.sync.fill(0)
+    run_persistent(s, f0, f1)
+    if s.sync[1] == 0:
+        return True
+    s.lane_mp.fill(0.0)
+    s.clear_faults()
+    clear_grid(s, f0)
+    run_parallel(s, f0, f1)
+    return False
