@@ -20,10 +20,11 @@ from .state import LANE_TASK
 from .step import clear_grid, grid_node, run_parallel
 from .transfer import check_particle, g2p_particle, p2g_particle, particle_G
 
-# A barrier wait of more than SLOW_SPINS spins (about 0.4 ms of atomic reads on the 2-CPU machine of BENCHMARKS.md,
+# A barrier wait of more than SLOW_SPINS spins (about 1.7 ms of atomic reads on the 2-CPU machine of BENCHMARKS.md,
 # where a wait normally takes microseconds and the first one of a launch, while the other CPU wakes, up to 0.1 ms)
 # means a thread was off its CPU; SLOW_WAITS of them in one pass (other work shares the CPUs: each costs a time slice
-# of the scheduler) or one wait of GIVE_UP_SPINS (about 30 ms: fewer threads running than lanes) give up the launch.
+# of the scheduler; alone, a 200-step pass there had at most 4) or one wait of GIVE_UP_SPINS (about 26 ms: fewer
+# threads running than lanes) give up the launch.
 SLOW_SPINS = 1 << 16
 SLOW_WAITS = 8
 GIVE_UP_SPINS = 1 << 20
