@@ -24,6 +24,7 @@ from .transfer import check_step
 
 PERSISTENT_BACKOFF = 8  # passes with a launch per step after a one-launch pass gave up (Simulator._lanes_pass)
 
+
 def _live(method):
     """Refuse to run a Simulator method once Taichi was re-initialised (its fields are freed)."""
     @functools.wraps(method)

@@ -45,15 +45,16 @@ def assert_identical(a, b):
 def test_one_launch_equals_a_launch_per_step(dim):
     """Two lanes: forward and backward in one launch each give the states, loss and gradients of run_parallel and
     run_parallel_reverse exactly (the same bodies over the same shares). A pass that gave up (other work on the CPUs,
-    s.sync[1]) was run with a launch per step, so the one-launch pass is tried up to 5 times."""
+    s.sync[1], as under pytest-xdist on 2 cores) was run with a launch per step, whose results must match too; the
+    one-launch pass is tried up to 5 times, and the test is skipped if every try gave up
+    (test_one_lane_counts_every_barrier runs the one-launch kernels whatever the load)."""
     sim, controls = problem(dim, 2)
     reference = gradient_pass(sim, controls, LAUNCH_PER_STEP)
     for _ in range(5):
-        got = gradient_pass(sim, controls, 0)
-        if sim._persistent_wait == 0:  # neither pass gave up
-            break
-    assert sim._persistent_wait == 0, "every one-launch pass gave up"
-    assert_identical(got, reference)
+        assert_identical(gradient_pass(sim, controls, 0), reference)
+        if sim._persistent_wait == 0:  # neither pass gave up: both ran in one launch
+            return
+    pytest.skip("every one-launch pass gave up: other work held the CPUs")
 
 
 def test_one_lane_counts_every_barrier():
