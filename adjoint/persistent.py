@@ -13,9 +13,8 @@ from mls_mpm.grid import grid_op_node
 from mls_mpm.persistent import barrier, lane_shares, node_of
 from mls_mpm.state import LANE_TASK
 
-from .losses import evaluate_reverse
 from .state import zero_particle
-from .step import grid_node_reverse, run_parallel_reverse
+from .step import grid_node_reverse
 from .transfer import check_particle_reverse, g2p_particle_reverse, p2g_particle_reverse
 
 
@@ -53,16 +52,12 @@ def run_persistent_reverse(s: ti.template(), a: ti.template(), f0: ti.i32, f1: t
 
 
 def persistent_pass_reverse(s, a, f0, f1):
-    """Reverse steps f1-1..f0 of a state with lanes by run_persistent_reverse, or, if a barrier gave up, the whole
-    reverse pass again (the adjoints and the fault re-seeded from the loss at step s.steps, the private grids cleared) by
-    run_parallel_reverse. Returns whether run_persistent_reverse finished the pass."""
+    """Reverse steps f1-1..f0 of a state with lanes by run_persistent_reverse; whether it finished the pass. If a barrier
+    gave up, the private dL/dv_i grids are left zero, and the caller begins the whole reverse pass again (the adjoints
+    re-seeded from the loss) with run_parallel_reverse (Simulator._pass)."""
     s.sync.fill(0)
     run_persistent_reverse(s, a, f0, f1)
     if s.sync[1] == 0:
         return True
-    a.adj_F_pc.fill(0.0)
-    a.fault[None] = -1
     a.lane_adj_v.fill(0.0)
-    evaluate_reverse(s, a, s.steps)
-    run_parallel_reverse(s, a, f0, f1)
     return False

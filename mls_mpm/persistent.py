@@ -12,12 +12,13 @@ states equal those of run_parallel bit for bit.
 
 A barrier needs every lane's thread running at once. When they are not (other work holds the CPUs, or fewer threads
 run than lanes), waits grow long (SLOW_SPINS, GIVE_UP_SPINS): the launch gives up, every thread leaves at its next
-barrier, and the caller runs the pass again with run_parallel, whose launches wait without spinning (persistent_pass).
+barrier, and the caller runs the pass again with run_parallel, whose launches wait without spinning (persistent_pass,
+Simulator._pass).
 """
 import taichi as ti
 
 from .state import LANE_TASK
-from .step import clear_grid, grid_node, run_parallel
+from .step import grid_node
 from .transfer import check_particle, g2p_particle, p2g_particle, particle_G
 
 # A barrier wait of more than SLOW_SPINS spins (about 1.7 ms of atomic reads on the 2-CPU machine of BENCHMARKS.md,
@@ -111,15 +112,12 @@ def run_persistent(s: ti.template(), f0: ti.i32, f1: ti.i32):
 
 
 def persistent_pass(s, f0, f1):
-    """Steps f0..f1-1 of a state with lanes (the parallel schedule on a CPU) by run_persistent, or, if a barrier gave
-    up, again from f0 by run_parallel (the private grids and faults cleared first). Returns whether run_persistent
-    finished the pass."""
+    """Steps f0..f1-1 of a state with lanes (the parallel schedule on a CPU) by run_persistent; whether it finished the
+    pass. If a barrier gave up, the steps are partly done: the private grids are left zero, and the caller begins the
+    pass again with run_parallel (Simulator._pass)."""
     s.sync.fill(0)
     run_persistent(s, f0, f1)
     if s.sync[1] == 0:
         return True
     s.lane_mp.fill(0.0)
-    s.clear_faults()
-    clear_grid(s, f0)
-    run_parallel(s, f0, f1)
     return False

@@ -22,7 +22,7 @@ from .tape import tape_gradient, tape_gradients_in_child
 from .transfer import check_step
 
 
-PERSISTENT_BACKOFF = 8  # passes with a launch per step after a one-launch pass gave up (Simulator._lanes_pass)
+PERSISTENT_BACKOFF = 8  # passes with a launch per step after a one-launch pass gave up (Simulator._pass)
 
 
 def _live(method):
@@ -150,14 +150,12 @@ class Simulator:
         self._forward_done = self._backward_done = False
         self._stored = start
         s.F_pc.from_numpy(controls)
-        s.clear_faults()
-        clear_grid(s, start)
-        if self._serial:
-            run_serial(s, start, self.cfg.steps)
-        elif s.lanes:
-            self._lanes_pass(persistent_pass, run_parallel, s, start, self.cfg.steps)
-        else:
-            run_parallel(s, start, self.cfg.steps)
+
+        def begin():
+            s.clear_faults()
+            clear_grid(s, start)
+
+        self._pass(begin, (run_serial, persistent_pass, run_parallel), s, start, self.cfg.steps)
         check_step(s, self.cfg.steps)
         self._raise_fault(s)
         self._start = start
@@ -184,16 +182,15 @@ class Simulator:
             raise ValueError(f"stop = {stop}: expected a step in [0, {self.cfg.steps})")
         self._backward_done = False
         a = self._adjoint_state()
-        a.adj_F_pc.fill(0.0)
-        a.fault[None] = -1
         s = self.fields
-        evaluate_reverse(s, a, self.cfg.steps)
-        if self._serial:
-            run_serial_reverse(s, a, stop, self.cfg.steps)
-        elif s.lanes:
-            self._lanes_pass(persistent_pass_reverse, run_parallel_reverse, s, a, stop, self.cfg.steps)
-        else:
-            run_parallel_reverse(s, a, stop, self.cfg.steps)
+
+        def begin():
+            a.adj_F_pc.fill(0.0)
+            a.fault[None] = -1
+            evaluate_reverse(s, a, self.cfg.steps)
+
+        schedules = (run_serial_reverse, persistent_pass_reverse, run_parallel_reverse)
+        self._pass(begin, schedules, s, a, stop, self.cfg.steps)
         self._stop = stop
         fault = int(a.fault[None])
         if fault >= 0:  # the latest step, and in it the lowest particle (stored as N - 1 - p, see adjoint.step)
@@ -267,14 +264,24 @@ class Simulator:
         return grad
 
     # helpers
-    def _lanes_pass(self, persistent, parallel, *args):
-        """A pass of the parallel schedule on a CPU (lanes): in one launch (mls_mpm.persistent), unless one gave up
-        within the last PERSISTENT_BACKOFF passes (other work held the CPUs); then with a launch per step."""
-        if self._persistent_wait > 0:
+    def _pass(self, begin, schedules, *args):
+        """begin(), then a pass in this simulator's schedule; schedules: its (serial, one launch, launch per step)
+        functions, each called with args. The parallel schedule on a CPU (lanes) runs in one launch
+        (mls_mpm.persistent); a one-launch pass that gave up (other work held the CPUs) is begun again and run with
+        a launch per step, as are the next PERSISTENT_BACKOFF passes."""
+        serial, one_launch, parallel = schedules
+        begin()
+        if self._serial:
+            serial(*args)
+        elif not self.fields.lanes:
+            parallel(*args)
+        elif self._persistent_wait > 0:
             self._persistent_wait -= 1
             parallel(*args)
-        elif not persistent(*args):
+        elif not one_launch(*args):
             self._persistent_wait = PERSISTENT_BACKOFF
+            begin()
+            parallel(*args)
 
     def _initial_adjoint(self, name, field):
         runtime.RUNTIME.check(self._generation, self._built_for)

@@ -371,8 +371,8 @@ def run_step_pair(pair, f, w, upstream_nan=(), n=1, persistent=False):
     upstream w. With n = 2 the pass crosses a step boundary: the reverse grid loop of step f + 1 recomputes the
     grid velocity of step f that the reverse G2P of step f reads (one velocity slot). persistent (a state with
     lanes): the passes in one launch each, run_persistent and run_persistent_reverse, done again (up to 3 times, then the test is
-    skipped) if a barrier gave up because other work held the CPUs (persistent_pass_reverse, which Simulator.backward calls, runs
-    the pass again with run_parallel_reverse instead: tests/test_persistent.py drives it).
+    skipped) if a barrier gave up because other work held the CPUs (persistent_pass_reverse, which Simulator.backward
+    calls, then says so, and the pass runs again with run_parallel_reverse: tests/test_persistent.py drives it).
 
     Returns the Tape's dL/d(x, v, C, F)^f and dL/dF_pc. The upstream of the particles in upstream_nan is NaN.
     """
