@@ -87,6 +87,7 @@ NO_TWIN = {
     },
     "persistent": {
         "barrier": "synchronisation of the lanes' threads: the reverse pass uses the same barrier",
+        "tick": "the lanes' progress for the barrier: the reverse pass ticks it too",
         "own_nodes": "an index range (the reverse pass takes the same share)",
         "node_of": "an index conversion (the reverse pass uses it too)",
         "own_particles": "an index range (the reverse pass takes the same share)",

@@ -10,7 +10,7 @@ shares in the same order as run_parallel_reverse: the adjoints equal its own bit
 import taichi as ti
 
 from mls_mpm.grid import grid_op_node
-from mls_mpm.persistent import barrier, lane_shares, node_of
+from mls_mpm.persistent import barrier, lane_shares, node_of, tick
 from mls_mpm.state import LANE_TASK
 
 from .state import zero_particle
@@ -30,6 +30,7 @@ def run_persistent_reverse(s: ti.template(), a: ti.template(), f0: ti.i32, f1: t
             if ti.static(not s.every_velocity):  # v_i of the pass's last step into the one slot (velocity_loop)
                 for k in range(k0, k1):
                     grid_op_node(s, f1 - 1, node_of(s, k))
+                    tick(s, k)
                 arrived += s.lanes
                 alive = barrier(s, arrived)
             for j in range(f1 - f0):
@@ -37,11 +38,13 @@ def run_persistent_reverse(s: ti.template(), a: ti.template(), f0: ti.i32, f1: t
                 if alive:
                     for p in range(lo, hi):
                         g2p_particle_reverse(s, a, f, p, lane)
+                        tick(s, p)
                     arrived += s.lanes
                     alive = barrier(s, arrived)
                 if alive:
                     for k in range(k0, k1):
                         grid_node_reverse(s, a, f, node_of(s, k), f0)
+                        tick(s, k)
                     arrived += s.lanes
                     alive = barrier(s, arrived)
                 if alive:
@@ -49,6 +52,7 @@ def run_persistent_reverse(s: ti.template(), a: ti.template(), f0: ti.i32, f1: t
                         p2g_particle_reverse(s, a, f, p)
                         zero_particle(a, (f + 1) % 2, p)
                         check_particle_reverse(s, a, f, p)
+                        tick(s, p)
 
 
 def persistent_pass_reverse(s, a, f0, f1):

@@ -59,9 +59,9 @@ def parts(cfg, n_particles, grids=(), position_loss=False, tape=False):
     ]
     lanes = 0 if tape else cfg.lanes(N)
     if lanes:  # forward private grids (m, p) and the adjoint's (dL/dv); one step's G_p (State.G_step); the barrier's
-        # three counters (State.sync, mls_mpm/persistent.py)
+        # four counters (State.sync, State.progress, mls_mpm/persistent.py)
         out.append(Part(f"the {lanes} per-thread grids of {n}{sq} nodes", "sim.n_grid or sim.threads",
-                        lanes * nodes * (1 + 2 * d) * w + N * d * d * w + 3 * 4))
+                        lanes * nodes * (1 + 2 * d) * w + N * d * d * w + 4 * 4))
     if grids:
         field = numpy = 0
         for res, ch, has_alpha in grids:

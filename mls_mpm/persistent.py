@@ -11,9 +11,12 @@ it scattered). The per-particle and per-node bodies are step.py's, over the same
 states equal those of run_parallel bit for bit.
 
 A barrier needs every lane's thread running at once. When they are not (other work holds the CPUs, or fewer threads
-run than lanes), waits grow long (SLOW_SPINS, GIVE_UP_SPINS): the launch gives up, every thread leaves at its next
-barrier, and the caller runs the pass again with run_parallel, whose launches wait without spinning (persistent_pass,
-Simulator._pass).
+run than lanes), waits grow long while no lane gets on with its work: each lane ticks s.progress as it goes (every
+PROGRESS_EVERY particles or nodes), and a wait counts its spins since the last tick it saw (SLOW_SPINS,
+GIVE_UP_SPINS). A lane that is only slower (more particles in its share on an expensive branch of the 3D polar
+decomposition, pages touched for the first time) keeps ticking, so the waits it causes do not count. After too
+many, the launch gives up, every thread leaves at its next barrier, and the caller runs the pass again with
+run_parallel, whose launches wait without spinning (persistent_pass, Simulator._pass).
 """
 import taichi as ti
 
@@ -23,27 +26,50 @@ from .transfer import check_particle, g2p_particle, p2g_particle, particle_G
 
 # A barrier wait of more than SLOW_SPINS spins (about 1.7 ms of atomic reads on the 2-CPU machine of BENCHMARKS.md,
 # where a wait normally takes microseconds and the first one of a launch, while the other CPU wakes, up to 0.1 ms)
-# means a thread was off its CPU; SLOW_WAITS of them in one pass (other work shares the CPUs: each costs a time slice
-# of the scheduler; alone, a 200-step pass there had at most 4) or one wait of GIVE_UP_SPINS (about 26 ms: fewer
-# threads running than lanes) give up the launch.
+# without a tick of s.progress means the lanes it waits for are off their CPUs; SLOW_WAITS of them in one pass (other
+# work shares the CPUs: each costs a time slice of the scheduler) or one wait of GIVE_UP_SPINS without a tick (about
+# 26 ms: fewer threads running than lanes) give up the launch. Counting all the spins of a wait instead, as before,
+# took a lane's longer share of the work for absence: the 3D 32^3 / 16k backward (about 3 ms a lane between
+# barriers) gave up its first pass, and then one pass in about six, with nothing else running (AMD EPYC, 2 threads).
 SLOW_SPINS = 1 << 16
 SLOW_WAITS = 8
 GIVE_UP_SPINS = 1 << 20
+# A lane ticks s.progress once every PROGRESS_EVERY particles or nodes (an atomic add on a cache line of its own, a
+# few microseconds of work apart even in 2D; only its changes count, so it is never reset); a waiting thread reads it
+# once every PROGRESS_CHECK spins, so that its reads do not take the line from the working lanes at every spin.
+PROGRESS_EVERY = 64
+PROGRESS_CHECK = 1 << 10
+
+
+@ti.func
+def tick(s: ti.template(), i):
+    """Item i of a lane's loop (a particle or a node index): every PROGRESS_EVERY-th ticks s.progress (barrier)."""
+    if i % PROGRESS_EVERY == 0:
+        ti.atomic_add(s.progress[None], 1)
 
 
 @ti.func
 def barrier(s: ti.template(), target):
     """Arrive (s.sync[0] += 1) and wait until `target` arrivals in all, or until some thread gave up (s.sync[1]);
-    whether the pass goes on. s.sync[2] counts the pass's slow waits. Atomic reads (atomic_add of 0): the compiler
-    may not hoist them out of the loop, and the seq_cst atomics order every thread's field writes before the barrier
-    against its reads after it."""
+    whether the pass goes on. s.sync[2] counts the pass's slow waits: SLOW_SPINS spins without a tick of s.progress
+    (the lanes' work). Atomic reads (atomic_add of 0): the compiler may not hoist them out of the loop, and the
+    seq_cst atomics order every thread's field writes before the barrier against its reads after it."""
     ti.atomic_add(s.sync[0], 1)
-    spins = 0
+    seen = ti.atomic_add(s.progress[None], 0)
+    spins = 0  # since the last tick seen
+    slow = False
     while ti.atomic_add(s.sync[0], 0) < target and ti.atomic_add(s.sync[1], 0) == 0:
         spins += 1
+        if spins % PROGRESS_CHECK == 0:
+            now = ti.atomic_add(s.progress[None], 0)
+            if now != seen:
+                seen = now
+                spins = 0
+        if spins > SLOW_SPINS:
+            slow = True
         if spins == GIVE_UP_SPINS:
             ti.atomic_add(s.sync[1], 1)
-    if spins > SLOW_SPINS:
+    if slow:
         if ti.atomic_add(s.sync[2], 1) + 1 >= SLOW_WAITS:
             ti.atomic_add(s.sync[1], 1)
     return ti.atomic_add(s.sync[1], 0) == 0
@@ -99,16 +125,19 @@ def run_persistent(s: ti.template(), f0: ti.i32, f1: ti.i32):
                 if alive:
                     for p in range(lo, hi):  # the stress inline (a loop of its own into s.G_step: 2x slower in 2D)
                         check_particle(s, f, p, p2g_particle(s, f, p, lane, particle_G(s, f, p)))
+                        tick(s, p)
                     arrived += s.lanes
                     alive = barrier(s, arrived)
                 if alive:
                     for k in range(k0, k1):
                         grid_node(s, f, node_of(s, k))
+                        tick(s, k)
                     arrived += s.lanes
                     alive = barrier(s, arrived)
                 if alive:
                     for p in range(lo, hi):
                         g2p_particle(s, f, p)
+                        tick(s, p)
 
 
 def persistent_pass(s, f0, f1):

@@ -128,6 +128,7 @@ class State:
             self.lane_mp = ti.Vector.field(d + 1, dt_, shape=(lanes,) + grid)  # private node (p, m) of one thread
             self.G_step = ti.Matrix.field(d, d, dt_, shape=N)  # G_p of the step being scattered (step.step_loops)
             self.sync = ti.field(ti.i32, shape=3)  # persistent.barrier: arrivals, the give-up flag, slow waits
+            self.progress = ti.field(ti.i32, shape=())  # persistent.tick: the lanes' work, a cache line of its own
         self.loss = ti.field(dt_, shape=(), needs_grad=g)
         self.fault = ti.field(ti.i64, shape=2)  # least faulty f * N + p per FAULT_* kind
         self.has_colors = colors

@@ -1,14 +1,18 @@
 """The parallel schedule's passes in one launch (mls_mpm/persistent.py, adjoint/persistent.py): the same states and
 gradients as a launch per step, bit for bit, in 2D and 3D; a pass that gives up is run again, and the next ones take a
 launch per step for a while; a barrier left alone gives up instead of waiting forever."""
+import time
+
 import numpy as np
 import pytest
 import taichi as ti
 
 import adjoint.persistent
 import mls_mpm.persistent
+from mls_mpm import SimConfig, runtime
 from mls_mpm.bench.child import scene_of
 from mls_mpm.simulator import PERSISTENT_BACKOFF, Simulator
+from mls_mpm.state import LANE_TASK
 
 CASES = {2: dict(dtype="f64", n_grid=32, particles=1000, steps=20),
          3: dict(dim=3, dtype="f64", n_grid=16, particles=1500, steps=6)}
@@ -117,6 +121,8 @@ def test_a_pass_that_gave_up_is_run_again_and_the_next_ones_wait(monkeypatch):
 class Lone:
     def __init__(self):
         self.sync = ti.field(ti.i32, shape=3)
+        self.progress = ti.field(ti.i32, shape=())
+        self.sink = ti.field(ti.f64, shape=())
 
 
 @ti.kernel
@@ -133,3 +139,63 @@ def test_a_barrier_left_alone_gives_up():
     s = Lone()
     assert wait_alone(s) == 0
     assert s.sync.to_numpy().tolist() == [1, 1, 1]
+
+
+@ti.kernel
+def lanes_work(s: ti.template(), rounds: ti.i32, work: ti.i32, ticks: ti.template(), both: ti.template(),
+               meet: ti.template()):
+    """Two lanes (LANE_TASK items each, as run_persistent): lane 1 (and lane 0 if `both`) computes for `work`
+    iterations before each of `rounds` barriers (none unless `meet`), ticking s.progress as the lanes' loops do when
+    `ticks`; else lane 0 only waits at them."""
+    for item in range(2 * LANE_TASK):
+        if item % LANE_TASK == 0:
+            lane = item // LANE_TASK
+            arrived = 0
+            alive = True
+            acc = 0.0
+            for _ in range(rounds):
+                if alive:
+                    if lane == 1 or ti.static(both):
+                        for i in range(work):
+                            acc = acc * 0.999999 + ti.sin(ti.cast(i, ti.f64))
+                            if ti.static(ticks):
+                                mls_mpm.persistent.tick(s, i)
+                    if ti.static(meet):
+                        arrived += 2
+                        alive = mls_mpm.persistent.barrier(s, arrived)
+            s.sink[None] += acc
+
+
+def lane_rounds(ticks, both=False, meet=True, rounds=10, work=1 << 18):
+    """s.sync after lanes_work, and its wall time in seconds."""
+    s = Lone()
+    t0 = time.perf_counter()
+    lanes_work(s, rounds, work, ticks, both, meet)
+    return s.sync.to_numpy().tolist(), time.perf_counter() - t0
+
+
+def test_a_lane_that_works_longer_is_waited_for():
+    """A lane that takes longer than SLOW_SPINS between barriers (here about 3 ms of arithmetic a round, against about
+    1.7 ms of spins) but ticks s.progress as it goes, as the lanes' loops do, is waited for: the launch does not give
+    up (the 3D backward gave up, with nothing else running, when a lane's longer share of the work counted as
+    absence). Without ticks the same waits count as slow.
+
+    Needs both lanes on a CPU at once, which other work (pytest-xdist's other worker) can prevent: each try first
+    times both lanes working alike. If that took about the time of one lane alone (the CPUs were free) and the try
+    still gave up, the test fails; a try that gave up under load is repeated, up to 5 times, then skipped."""
+    runtime.ensure(SimConfig(dtype="f64", arch="cpu", threads=2))  # two threads: both lanes at once
+    lane_rounds(ticks=True, both=True)  # compiles
+    lane_rounds(ticks=True)
+    alone = min(lane_rounds(ticks=True, meet=False)[1] for _ in range(3))  # lane 1's work alone, no barrier
+    for _ in range(5):
+        control, took = lane_rounds(ticks=True, both=True)
+        sync = lane_rounds(ticks=True)[0]
+        if sync[1] == 0:
+            assert sync[0] == 20
+            break
+        free = control == [20, 0, 0] and took < 1.5 * alone
+        assert not free, f"a lane that works and ticks was given up for ({sync}) on free CPUs"
+    else:
+        pytest.skip(f"every try gave up ({sync}): other work held the CPUs")
+    silent = lane_rounds(ticks=False)[0]  # the same waits without ticks: slow (8 of them give up, on free CPUs)
+    assert silent[2] >= 1, silent
