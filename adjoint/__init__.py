@@ -88,6 +88,9 @@ NO_TWIN = {
     "persistent": {
         "barrier": "synchronisation of the lanes' threads: the reverse pass uses the same barrier",
         "tick": "the lanes' progress for the barrier: the reverse pass ticks it too",
+        "work_done": "the lanes' progress read by the barrier, which the reverse pass uses too",
+        "chunks": "an index range cut in chunks (the reverse pass cuts its loops alike)",
+        "chunk": "an index range cut in chunks (the reverse pass cuts its loops alike)",
         "own_nodes": "an index range (the reverse pass takes the same share)",
         "node_of": "an index conversion (the reverse pass uses it too)",
         "own_particles": "an index range (the reverse pass takes the same share)",

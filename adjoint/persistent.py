@@ -10,7 +10,7 @@ shares in the same order as run_parallel_reverse: the adjoints equal its own bit
 import taichi as ti
 
 from mls_mpm.grid import grid_op_node
-from mls_mpm.persistent import barrier, lane_shares, node_of, tick
+from mls_mpm.persistent import barrier, chunk, chunks, lane_shares, node_of, tick
 from mls_mpm.state import LANE_TASK
 
 from .state import zero_particle
@@ -28,31 +28,39 @@ def run_persistent_reverse(s: ti.template(), a: ti.template(), f0: ti.i32, f1: t
             arrived = 0
             alive = True
             if ti.static(not s.every_velocity):  # v_i of the pass's last step into the one slot (velocity_loop)
-                for k in range(k0, k1):
-                    grid_op_node(s, f1 - 1, node_of(s, k))
-                    tick(s, k)
+                for c in range(chunks(k0, k1)):
+                    c0, c1 = chunk(k0, k1, c)
+                    for k in range(c0, c1):
+                        grid_op_node(s, f1 - 1, node_of(s, k))
+                    tick(s, lane)
                 arrived += s.lanes
                 alive = barrier(s, arrived)
             for j in range(f1 - f0):
                 f = f1 - 1 - j
                 if alive:
-                    for p in range(lo, hi):
-                        g2p_particle_reverse(s, a, f, p, lane)
-                        tick(s, p)
+                    for c in range(chunks(lo, hi)):
+                        c0, c1 = chunk(lo, hi, c)
+                        for p in range(c0, c1):
+                            g2p_particle_reverse(s, a, f, p, lane)
+                        tick(s, lane)
                     arrived += s.lanes
                     alive = barrier(s, arrived)
                 if alive:
-                    for k in range(k0, k1):
-                        grid_node_reverse(s, a, f, node_of(s, k), f0)
-                        tick(s, k)
+                    for c in range(chunks(k0, k1)):
+                        c0, c1 = chunk(k0, k1, c)
+                        for k in range(c0, c1):
+                            grid_node_reverse(s, a, f, node_of(s, k), f0)
+                        tick(s, lane)
                     arrived += s.lanes
                     alive = barrier(s, arrived)
                 if alive:
-                    for p in range(lo, hi):
-                        p2g_particle_reverse(s, a, f, p)
-                        zero_particle(a, (f + 1) % 2, p)
-                        check_particle_reverse(s, a, f, p)
-                        tick(s, p)
+                    for c in range(chunks(lo, hi)):
+                        c0, c1 = chunk(lo, hi, c)
+                        for p in range(c0, c1):
+                            p2g_particle_reverse(s, a, f, p)
+                            zero_particle(a, (f + 1) % 2, p)
+                            check_particle_reverse(s, a, f, p)
+                        tick(s, lane)
 
 
 def persistent_pass_reverse(s, a, f0, f1):

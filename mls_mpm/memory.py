@@ -59,9 +59,9 @@ def parts(cfg, n_particles, grids=(), position_loss=False, tape=False):
     ]
     lanes = 0 if tape else cfg.lanes(N)
     if lanes:  # forward private grids (m, p) and the adjoint's (dL/dv); one step's G_p (State.G_step); the barrier's
-        # four counters (State.sync, State.progress, mls_mpm/persistent.py)
+        # counters (State.sync, State.progress: state.PROGRESS_LINE = 16 a lane, mls_mpm/persistent.py)
         out.append(Part(f"the {lanes} per-thread grids of {n}{sq} nodes", "sim.n_grid or sim.threads",
-                        lanes * nodes * (1 + 2 * d) * w + N * d * d * w + 4 * 4))
+                        lanes * nodes * (1 + 2 * d) * w + N * d * d * w + 4 * (3 + 16 * lanes)))
     if grids:
         field = numpy = 0
         for res, ch, has_alpha in grids:

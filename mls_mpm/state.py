@@ -57,6 +57,9 @@ class LossGrid:
 # the other. Here n / (32 threads) = 16 items (lanes = threads), so the tasks are of 512 items, one per lane: each
 # thread scatters one lane's particles, in index order, into that lane's private grid, and no two threads share one.
 LANE_TASK = 512
+# State.progress gives each lane a row of PROGRESS_LINE i32 counters (64 bytes, a cache line's size), of which the lane
+# ticks the first (persistent.tick): lanes that tick the same line take it from each other's CPU at every tick.
+PROGRESS_LINE = 16
 
 
 @ti.func
@@ -128,7 +131,7 @@ class State:
             self.lane_mp = ti.Vector.field(d + 1, dt_, shape=(lanes,) + grid)  # private node (p, m) of one thread
             self.G_step = ti.Matrix.field(d, d, dt_, shape=N)  # G_p of the step being scattered (step.step_loops)
             self.sync = ti.field(ti.i32, shape=3)  # persistent.barrier: arrivals, the give-up flag, slow waits
-            self.progress = ti.field(ti.i32, shape=())  # persistent.tick: the lanes' work, a cache line of its own
+            self.progress = ti.field(ti.i32, shape=(lanes, PROGRESS_LINE))  # persistent.tick: each lane's work
         self.loss = ti.field(dt_, shape=(), needs_grad=g)
         self.fault = ti.field(ti.i64, shape=2)  # least faulty f * N + p per FAULT_* kind
         self.has_colors = colors

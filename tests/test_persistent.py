@@ -12,7 +12,7 @@ import mls_mpm.persistent
 from mls_mpm import SimConfig, runtime
 from mls_mpm.bench.child import scene_of
 from mls_mpm.simulator import PERSISTENT_BACKOFF, Simulator
-from mls_mpm.state import LANE_TASK
+from mls_mpm.state import LANE_TASK, PROGRESS_LINE
 
 CASES = {2: dict(dtype="f64", n_grid=32, particles=1000, steps=20),
          3: dict(dim=3, dtype="f64", n_grid=16, particles=1500, steps=6)}
@@ -121,7 +121,7 @@ def test_a_pass_that_gave_up_is_run_again_and_the_next_ones_wait(monkeypatch):
 class Lone:
     def __init__(self):
         self.sync = ti.field(ti.i32, shape=3)
-        self.progress = ti.field(ti.i32, shape=())
+        self.progress = ti.field(ti.i32, shape=(2, PROGRESS_LINE))
         self.sink = ti.field(ti.f64, shape=())
 
 
@@ -156,10 +156,12 @@ def lanes_work(s: ti.template(), rounds: ti.i32, work: ti.i32, ticks: ti.templat
             for _ in range(rounds):
                 if alive:
                     if lane == 1 or ti.static(both):
-                        for i in range(work):
-                            acc = acc * 0.999999 + ti.sin(ti.cast(i, ti.f64))
+                        for c in range(mls_mpm.persistent.chunks(0, work)):
+                            c0, c1 = mls_mpm.persistent.chunk(0, work, c)
+                            for i in range(c0, c1):
+                                acc = acc * 0.999999 + ti.sin(ti.cast(i, ti.f64))
                             if ti.static(ticks):
-                                mls_mpm.persistent.tick(s, i)
+                                mls_mpm.persistent.tick(s, lane)
                     if ti.static(meet):
                         arrived += 2
                         alive = mls_mpm.persistent.barrier(s, arrived)
