@@ -17,6 +17,11 @@ SERIAL_BELOW = 4000  # particles + grid nodes under which "auto" runs serially o
 # 64^2 (5,696 units, 1.18x), the parallel one from 4,000 on 64^2 (8,096 units, 1.22x; 1.6-1.8x from 8,000 particles;
 # BENCHMARKS.md, "One launch a pass"). With a launch per step the crossover was 40,000 units.
 SERIAL_BELOW_2D_TWO_THREADS = 7_000
+# The same when those 2 threads are also the process's 2 CPUs, so that the worker threads are pinned one to each
+# (mls_mpm/affinity.py, pins_workers below): the parallel schedule then measured faster (forward + backward) from
+# 300 particles on 32^2 (1,324 units, 1.32x; the f64 thesis size, 2,269 units, 1.48x); at 100 particles on 32^2
+# (1,124 units) the two were even (BENCHMARKS.md, "Worker threads pinned").
+SERIAL_BELOW_2D_PINNED = 1_200
 STENCIL = 4  # the cubic B-spline touches 4 nodes per axis (base = floor(x/dx) - 1)
 DIMS = (2, 3)  # the dimensions the simulator runs in
 GRAVITY = -9.8  # default gravity along y (axis 1), in 2D and 3D
@@ -30,6 +35,17 @@ def default_threads() -> int:
         return len(os.sched_getaffinity(0)) or 1
     except (AttributeError, OSError):
         return os.cpu_count() or 1
+
+
+def pins_workers(threads) -> bool:
+    """Whether Taichi's `threads` CPU worker threads are pinned one to each CPU (mls_mpm/affinity.py): on Linux,
+    with at least 2 threads, exactly as many as the CPUs this process may run on."""
+    if threads < 2 or not hasattr(os, "sched_setaffinity") or not os.path.isdir("/proc/self/task"):
+        return False
+    try:
+        return len(os.sched_getaffinity(0)) == threads
+    except OSError:
+        return False
 
 
 COMPILE_VARIABLE = "MLS_MPM_COMPILE"
@@ -90,7 +106,8 @@ class SimConfig:
         mls_mpm/persistent.py, or one launch per step when other work holds the CPUs; on a GPU one launch per
         step); "serial" runs all steps in one serial launch (faster for small scenes on a CPU); "auto" picks
         serial on a CPU with one thread or below SERIAL_BELOW particle-node units (2D on 2 threads:
-        SERIAL_BELOW_2D_TWO_THREADS; see BENCHMARKS.md), else parallel.
+        SERIAL_BELOW_2D_TWO_THREADS, or SERIAL_BELOW_2D_PINNED when they are pinned one to each of the
+        process's 2 CPUs; see BENCHMARKS.md), else parallel.
     max_memory_gb: refuse a simulator whose preallocated fields would exceed this many GiB
         (0: 90% of the memory available when it is built).
     """
@@ -206,7 +223,9 @@ class SimConfig:
             return False
         if self.cpu_threads == 1:  # one thread: the parallel schedule would only add its launches and private grid
             return True
-        below = SERIAL_BELOW_2D_TWO_THREADS if self.dim == 2 and self.cpu_threads == 2 else SERIAL_BELOW
+        below = SERIAL_BELOW
+        if self.dim == 2 and self.cpu_threads == 2:
+            below = SERIAL_BELOW_2D_PINNED if pins_workers(2) else SERIAL_BELOW_2D_TWO_THREADS
         return n_particles + self.n_grid ** self.dim < below
 
     def lanes(self, n_particles) -> int:

@@ -102,6 +102,7 @@ class TaichiRuntime:
         self.generation = 0
         self.settings = None
         self._prog = None  # the Taichi program these settings describe (a ti.init elsewhere replaces it)
+        self.pinned = {}  # {thread id: CPU} of the CPU worker threads ensure pinned (affinity.pin_workers)
 
     def current(self):
         """Settings of the running Taichi program, or None before ti.init (or after a ti.reset elsewhere)."""
@@ -118,6 +119,7 @@ class TaichiRuntime:
         self.generation += 1
         self.settings = settings
         self._prog = impl.get_runtime().prog
+        self.pinned = {}
 
     def fits(self, cfg, tape=None) -> bool:
         """Whether the running Taichi serves cfg (its dtype, arch and CPU threads) and `tape` (module ensure)."""
@@ -164,6 +166,10 @@ class TaichiRuntime:
             ti.set_logging_level(ti.WARN)
             if running_arch() == backend:
                 self._started(Settings(backend, cfg.dtype, threads, scalarized, optimized))
+                if backend == "cpu":
+                    from .affinity import pin_workers  # here: affinity imports state, which imports this module
+
+                    self.pinned = pin_workers(threads)
                 return self.generation
             ti.reset()  # Taichi fell back to the CPU
         self.settings = None

@@ -92,23 +92,38 @@ def test_a_reset_outside_the_runtime_is_seen():
         sim.state(0)
 
 
-@pytest.mark.parametrize("dim, n_grid, particles, threads, serial", [
-    (2, 64, 1600, 2, True),  # 2D on 2 threads: serial measured faster up to 5,696 particles + nodes (BENCHMARKS.md)
-    (2, 64, 4000, 2, False),  # 8,096: the parallel schedule, each pass in one launch, measured faster
-    (2, 128, 64000, 1, True),  # one thread: always serial
-    (3, 64, 100000, 1, True),
-    (2, 128, 32000, 2, False),  # 16,384 nodes + 32,000 particles: past SERIAL_BELOW_2D_TWO_THREADS
-    (2, 256, 64000, 2, False),
-    (2, 64, 8192, 4, False),  # more threads: the general SERIAL_BELOW (4,000 particles + nodes)
-    (2, 32, 1000, 8, True),
-    (3, 32, 17157, 2, False),  # 3D: the parallel schedule measured faster (17k particles, 32^3)
-    (3, 12, 300, 2, True),
+@pytest.mark.parametrize("dim, n_grid, particles, threads, pinned, serial", [
+    (2, 64, 1600, 2, False, True),  # 2D on 2 threads: serial measured faster up to 5,696 particles + nodes
+    (2, 64, 4000, 2, False, False),  # 8,096: the parallel schedule, each pass in one launch, measured faster
+    (2, 64, 1600, 2, True, False),  # the 2 threads pinned to the 2 CPUs: parallel from SERIAL_BELOW_2D_PINNED
+    (2, 32, 1245, 2, True, False),  # the f64 thesis size (2,269 units): parallel measured 1.48x faster pinned
+    (2, 32, 1245, 2, False, True),
+    (2, 16, 100, 2, True, True),  # 356 units: below the pinned floor, serial
+    (2, 128, 64000, 1, False, True),  # one thread: always serial
+    (3, 64, 100000, 1, False, True),
+    (2, 128, 32000, 2, False, False),  # 16,384 nodes + 32,000 particles: past SERIAL_BELOW_2D_TWO_THREADS
+    (2, 256, 64000, 2, False, False),
+    (2, 64, 8192, 4, False, False),  # more threads: the general SERIAL_BELOW (4,000 particles + nodes)
+    (2, 32, 1000, 8, False, True),
+    (2, 32, 1000, 4, True, True),  # pinned, but more than 2 threads: SERIAL_BELOW, as unmeasured
+    (3, 32, 17157, 2, False, False),  # 3D: the parallel schedule measured faster (17k particles, 32^3)
+    (3, 12, 300, 2, False, True),
+    (3, 12, 300, 2, True, True),  # 3D pinned keeps SERIAL_BELOW
 ])
-def test_auto_schedule_choice(dim, n_grid, particles, threads, serial):
+def test_auto_schedule_choice(monkeypatch, dim, n_grid, particles, threads, pinned, serial):
+    monkeypatch.setattr(mls_mpm.config, "pins_workers", lambda t: pinned)  # not this machine's CPU count
     cfg = mls_mpm.SimConfig(dim=dim, n_grid=n_grid, threads=threads)
     assert cfg.serial(particles) is serial
     assert cfg.lanes(particles) == (0 if serial else threads)
     assert mls_mpm.SimConfig(dim=dim, n_grid=n_grid, threads=threads, schedule="parallel").serial(particles) is False
+
+
+def test_pins_workers_only_when_threads_fill_the_cpus():
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else 0
+    assert mls_mpm.config.pins_workers(1) is False  # one thread: nothing to place
+    assert mls_mpm.config.pins_workers(cpus + 1) is False
+    if cpus >= 2 and os.path.isdir("/proc/self/task"):
+        assert mls_mpm.config.pins_workers(cpus) is True
 
 
 MODES_SCRIPT = r"""
@@ -121,8 +136,9 @@ from conftest import body, random_controls, scene_config
 from mls_mpm.runtime import RUNTIME
 
 out = {}
-for case, dim, dtype in (("2", 2, "f64"), ("3", 3, "f64"), ("2 f32", 2, "f32")):
-    cfg = scene_config(dim=dim, dtype=dtype)
+for case, dim, dtype, schedule in (("2", 2, "f64", "serial"), ("3", 3, "f64", "parallel"),
+                                   ("2 f32", 2, "f32", "parallel")):
+    cfg = scene_config(dim=dim, dtype=dtype, schedule=schedule)
     res = 16 if dim == 2 else 8
     sim = mls_mpm.Simulator(cfg, body(dim), loss=mls_mpm.MassLoss([np.full((res,) * dim, 0.5 / res ** dim)]))
     c = random_controls(sim.control_shape, 0.05, seed=3)
@@ -138,8 +154,8 @@ np.savez(sys.argv[1], **out)
 
 def test_fast_compile_gives_the_optimized_results_to_the_bit(tmp_path):
     """MLS_MPM_COMPILE=fast (what this suite runs under, conftest) against the default, optimized build: the small
-    2D and 3D test scenes (the 2D one on the serial schedule, the 3D one on the parallel; float64, and the 2D one
-    in float32 too), run in two child processes side by side, give the same final state, loss, dL/dF_pc and dL/dx0
+    2D and 3D test scenes (float64 2D on the serial schedule, 3D on the parallel, and float32 2D on the parallel),
+    run in two child processes side by side, give the same final state, loss, dL/dF_pc and dL/dx0
     to the bit, so the suite's verdicts hold for what users run."""
     script = tmp_path / "modes.py"
     script.write_text(MODES_SCRIPT)
@@ -153,7 +169,7 @@ def test_fast_compile_gives_the_optimized_results_to_the_bit(tmp_path):
         assert child.returncode == 0, f"{mode}: {err[-2000:]}"
     opt, fast = (np.load(tmp_path / f"{mode}.npz") for mode in ("optimized", "fast"))
     assert all(opt[f"optimized {case}"] and not fast[f"optimized {case}"] for case in ("2", "3", "2 f32"))
-    assert (str(opt["schedule 2"]), str(opt["schedule 3"])) == ("serial", "parallel")
+    assert [str(opt[f"schedule {case}"]) for case in ("2", "3", "2 f32")] == ["serial", "parallel", "parallel"]
     assert sorted(opt.files) == sorted(fast.files)
     for key in opt.files:
         if not key.startswith("optimized"):

@@ -86,8 +86,9 @@ def local_direction(c, k, p, D):
     return d / np.linalg.norm(d)
 
 
-def check_gradient(sim, c, local=(), n_random=2, seed=0, along_gradient=False, tape=True, eps=EPS):
-    """Forward finite; manual dL/dF_pc vs the Tape (<= 1e-8) and vs central differences (step eps, <= 1e-5) along
+def check_gradient(sim, c, local=(), n_random=2, seed=0, along_gradient=False, tape=True, eps=EPS,
+                   tape_tol=TAPE_TOL):
+    """Forward finite; manual dL/dF_pc vs the Tape (<= tape_tol, 1e-8 unless given) and vs central differences (step eps, <= 1e-5) along
     n_random random unit directions, along the whole gradient if along_gradient, and, for each (k, p) in
     `local`, along that particle's own gradient. Returns the gradient and the errors."""
     L = sim.forward(c)
@@ -97,7 +98,7 @@ def check_gradient(sim, c, local=(), n_random=2, seed=0, along_gradient=False, t
     errors = {}
     if tape:
         errors["tape"] = rel_err(g, sim.gradient_tape(c))
-        assert errors["tape"] <= TAPE_TOL
+        assert errors["tape"] <= tape_tol
     directions = {f"random {q}": random_unit(c.shape, seed=seed + q) for q in range(n_random)}
     if along_gradient:
         directions["gradient"] = g / np.linalg.norm(g)
@@ -370,7 +371,10 @@ def test_near_polar_singular_gradient_grows_like_one_over_r(base, capsys):
     """F + F_pc = POLAR + delta I, r = 2 delta from the singular set: the rotation's derivative
     dtheta = (a db - b da) / r^2 makes |dL/dF_pc| grow like 1 / r, finite down to the guard r^2 = ROTATION_EPS.
 
-    Per delta: finite; manual == Tape (<= 1e-8); central differences with eps = 1e-3 r (smooth on that scale)
+    Per delta: finite; manual == Tape (<= 1e-8 + 8 eps / r, eps the float64 epsilon: the parallel schedule sums
+    each node's mass and momentum in another order than the Tape's forward, lane by lane, and the 1 / r derivative
+    amplifies that round-off; measured 1.8e-12, 1.9e-10, 1.9e-8 at r = 2e-4, 2e-6, 2e-8, serial ~1e-13); central
+    differences with eps = 1e-3 r (smooth on that scale)
     along the particle's gradient (<= 1e-5); and |g| r constant to 5 % once the rotation term dominates.
     """
     base.reset()
@@ -378,7 +382,7 @@ def test_near_polar_singular_gradient_grows_like_one_over_r(base, capsys):
     rows = []
     for delta in (1e-4, 1e-6, 1e-8):
         c = singular_controls(base, POLAR + delta * np.eye(2))
-        g, _ = check_gradient(sim, c, n_random=0)
+        g, _ = check_gradient(sim, c, n_random=0, tape_tol=TAPE_TOL + 8.0 * np.finfo(np.float64).eps / (2 * delta))
         d = local_direction(c, k, p, g[k, p])
         err = rel_err(np.sum(g * d), fd(sim, c, d, eps=1e-3 * 2 * delta))
         assert err <= FD_TOL, delta
