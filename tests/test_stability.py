@@ -88,9 +88,9 @@ def local_direction(c, k, p, D):
 
 def check_gradient(sim, c, local=(), n_random=2, seed=0, along_gradient=False, tape=True, eps=EPS,
                    tape_tol=TAPE_TOL):
-    """Forward finite; manual dL/dF_pc vs the Tape (<= tape_tol, 1e-8 unless given) and vs central differences (step eps, <= 1e-5) along
-    n_random random unit directions, along the whole gradient if along_gradient, and, for each (k, p) in
-    `local`, along that particle's own gradient. Returns the gradient and the errors."""
+    """Forward finite; manual dL/dF_pc vs the Tape (<= tape_tol, 1e-8 unless given) and vs central differences
+    (step eps, <= 1e-5) along n_random random unit directions, along the whole gradient if along_gradient, and,
+    for each (k, p) in `local`, along that particle's own gradient. Returns the gradient and the errors."""
     L = sim.forward(c)
     assert np.isfinite(L)
     g = sim.backward()
