@@ -215,8 +215,9 @@ class SimConfig:
         """Largest stable explicit dt by the CFL condition dt <= dx / wave speed."""
         return self.dx / self.wave_speed
 
-    def serial(self, n_particles) -> bool:
-        """Whether stepping runs serially in one launch (see `schedule`)."""
+    def serial(self, n_particles, pinned=None) -> bool:
+        """Whether stepping runs serially in one launch (see `schedule`). pinned: whether Taichi's worker threads
+        were pinned (runtime.TaichiRuntime.pinned, once Taichi runs); None: whether they will be (pins_workers)."""
         if self.schedule != "auto":
             return self.schedule == "serial"
         if self.arch != "cpu":
@@ -225,12 +226,14 @@ class SimConfig:
             return True
         below = SERIAL_BELOW
         if self.dim == 2 and self.cpu_threads == 2:
-            below = SERIAL_BELOW_2D_PINNED if pins_workers(2) else SERIAL_BELOW_2D_TWO_THREADS
+            if pinned is None:
+                pinned = pins_workers(2)
+            below = SERIAL_BELOW_2D_PINNED if pinned else SERIAL_BELOW_2D_TWO_THREADS
         return n_particles + self.n_grid ** self.dim < below
 
-    def lanes(self, n_particles) -> int:
+    def lanes(self, n_particles, pinned=None) -> int:
         """Private scatter grids (one per CPU thread) of the parallel schedule; 0: atomics (GPU) or serial."""
-        if self.arch != "cpu" or self.serial(n_particles):
+        if self.arch != "cpu" or self.serial(n_particles, pinned):
             return 0
         return self.cpu_threads
 

@@ -76,3 +76,39 @@ def test_nothing_pinned_when_threads_do_not_match_the_cpus(tmp_path):
     got = child(tmp_path, 3)  # more threads than the two CPUs: no one-to-one placement exists
     assert got["pinned"] == {}
     assert all(mask == got["cpus"] for mask in got["masks"].values()), got["masks"]
+
+
+SCHEDULE_CHILD = """
+import json, os, sys
+cpus = sorted(os.sched_getaffinity(0))[:2]
+os.sched_setaffinity(0, set(cpus))
+import numpy as np
+import mls_mpm.affinity
+from mls_mpm import SimConfig, Simulator
+from mls_mpm.runtime import RUNTIME
+
+if sys.argv[1] == "fails":  # the probe does not single out the workers (as affinity.find_workers can answer)
+    mls_mpm.affinity.find_workers = lambda threads: None
+cfg = SimConfig(dim=2, n_grid=32, steps=2, stride=1, dtype="f64", threads=2)
+x0 = 0.3 + 0.4 * np.random.default_rng(0).random((1245, 2))  # the thesis size: 2,269 particles + nodes
+sim = Simulator(cfg, x0)
+print(json.dumps({"pinned": len(RUNTIME.pinned), "predicted_serial": cfg.serial(len(x0)),
+                  "serial": sim._serial, "lanes": sim.fields.lanes}))
+"""
+
+
+@pytest.mark.parametrize("probe", ["works", "fails"])
+def test_auto_schedule_follows_what_was_pinned(tmp_path, probe):
+    """`auto` runs 2D on 2 threads in parallel from SERIAL_BELOW_2D_PINNED only when the workers were pinned; when
+    the probe fails, the scene keeps the unpinned threshold (SERIAL_BELOW_2D_TWO_THREADS) and runs serially."""
+    script = tmp_path / "schedule.py"
+    script.write_text(SCHEDULE_CHILD)
+    res = subprocess.run([sys.executable, str(script), probe], capture_output=True, text=True, cwd=ROOT,
+                         env={**os.environ, "TI_LOG_LEVEL": "error"}, timeout=300)
+    assert res.returncode == 0, res.stderr[-2000:]
+    got = json.loads(res.stdout.strip().splitlines()[-1])
+    assert got["predicted_serial"] is False, got  # before Taichi starts, config expects the pinning
+    if probe == "works":
+        assert got == {"pinned": 2, "predicted_serial": False, "serial": False, "lanes": 2}
+    else:
+        assert got == {"pinned": 0, "predicted_serial": False, "serial": True, "lanes": 0}
