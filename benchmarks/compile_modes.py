@@ -1,4 +1,4 @@
-"""Compile time and run time of MLS_MPM_COMPILE=optimized (the default) against =fast: the figures behind
+"""Compile time and run time of MLS_MPM_COMPILE=optimized against =fast (the default): the figures behind
 `mls_mpm.config.compile_mode`.
 
     .venv/bin/python benchmarks/compile_modes.py [--quick] [--rounds R]

@@ -178,6 +178,9 @@ def build_parser():
                        help="quality: only these pairs (names in mls_mpm/bench/quality.py; default: all)")
     bench.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                        help="quality: passed to every morph, e.g. --set optimize.iterations=10 (repeatable)")
+    bench.add_argument("--warm-cache", action="store_true",
+                       help="quality: use Taichi's kernel cache as it is (default: each pair compiles in an empty "
+                            "cache of its own, as a shape of your own does)")
     return p
 
 
@@ -331,7 +334,8 @@ def cmd_bench(args):
         raise BenchError(f"bench {args.what}: --max-seconds {args.max_seconds:g}: expected seconds > 0, with bench "
                          "tradeoff only")
     quality_only = [flag for flag, given in (("--workers", args.workers is not None), ("--quality", args.quality),
-                                             ("--pairs", args.pairs is not None), ("--set", args.set)) if given]
+                                             ("--pairs", args.pairs is not None), ("--set", args.set),
+                                             ("--warm-cache", args.warm_cache)) if given]
     if quality_only and args.what != "quality":
         raise BenchError(f"bench {args.what}: {quality_only[0]} applies to bench quality only; drop it")
     if args.what == "quality":
@@ -344,7 +348,7 @@ def cmd_bench(args):
                 raise BenchError("bench quality: --pairs: expected pair names separated by commas, e.g. "
                                  "--pairs split_two,letter_A")
         bench_quality(quality=args.quality, quick=args.quick, workers=args.workers or 1, out=args.out, names=names,
-                      overrides=args.set)
+                      overrides=args.set, warm_cache=args.warm_cache)
         return 0
     if args.what == "gradient":
         from .bench import bench_against, bench_gradient

@@ -53,12 +53,16 @@ COMPILE_MODES = ("optimized", "fast")
 
 
 def compile_mode() -> str:
-    """How Taichi compiles on the CPU, from the environment variable MLS_MPM_COMPILE: "optimized" (the default,
-    Taichi's own IR optimizations on) or "fast" (off; LLVM still optimizes). Measured on 2 cores (BENCHMARKS.md):
-    "fast" compiles a 3D simulator's kernels about 3.5x faster and a 2D one's 2-3x, runs them at 0.9-1.4x the
-    optimized time, and gives the same results to the bit; the test suite uses it (tests/conftest.py). GPUs, and
-    Taichi started for the Tape oracle, always get the optimizations (runtime.wants_optimized, TaichiRuntime.fits)."""
-    mode = os.environ.get(COMPILE_VARIABLE) or "optimized"
+    """How Taichi compiles on the CPU, from the environment variable MLS_MPM_COMPILE: "fast" (the default: Taichi's
+    own IR optimizations off; LLVM still optimizes) or "optimized" (on). Measured on 2 cores (BENCHMARKS.md,
+    "Compile time"): with the one-launch kernels of the parallel schedule, "optimized" compiles a 2D simulator's
+    forward and reverse kernels in about 26 s and a 3D one's in about 137 s, "fast" in about 8 s and 21 s, and the
+    particle count is compiled in, so every new shape compiles afresh: a 30 s morph spent its whole budget
+    compiling. "fast" runs 1.01-1.08x the optimized time per step (1.31x once, the f64 thesis-size backward) and
+    gives the same results to the bit (tests/test_runtime.py). "optimized" pays for long runs of one scene whose
+    kernels are cached. GPUs, and Taichi started for the Tape oracle, always get the optimizations
+    (runtime.wants_optimized, TaichiRuntime.fits)."""
+    mode = os.environ.get(COMPILE_VARIABLE) or "fast"
     if mode not in COMPILE_MODES:
         raise UserError(f"environment variable {COMPILE_VARIABLE} = {mode!r}: expected one of "
                         f"{', '.join(COMPILE_MODES)}")

@@ -375,6 +375,37 @@ def test_against_table_takes_the_least_of_each_tree(temp_here, monkeypatch):
     assert list(temp_here.iterdir()) == []
 
 
+def test_bench_children_compile_as_this_process_resolved(monkeypatch):
+    """Every benchmark child is told the compile mode explicitly (an older tree whose own default differs then
+    compiles alike), and --against says when REV predates MLS_MPM_COMPILE and so cannot."""
+    from mls_mpm.bench import child as child_module
+
+    seen = {}
+
+    def fake_run(cmd, env=None, **kwargs):  # subprocess.run is the module's: record only run_child's call
+        if cmd[:2] == [sys.executable, "-c"]:
+            seen.update(env)
+        return subprocess.CompletedProcess(cmd, 0, stdout='{"mls_mpm": "x"}\n{"forward_ms": 1.0}\n', stderr="")
+
+    monkeypatch.setattr(child_module.subprocess, "run", fake_run)
+    for mode, expected in ((None, "fast"), ("optimized", "optimized")):
+        if mode is None:
+            monkeypatch.delenv("MLS_MPM_COMPILE", raising=False)
+        else:
+            monkeypatch.setenv("MLS_MPM_COMPILE", mode)
+        child_module.run_child("small", "manual", 2)
+        assert seen["MLS_MPM_COMPILE"] == expected
+    assert against._compile_note("HEAD", "HEAD", "cpu") == ""  # HEAD reads the variable
+    old_config = subprocess.CompletedProcess([], 0, stdout="SERIAL_BELOW = 4000\n", stderr="")
+    monkeypatch.setattr(against, "_git", lambda *args: old_config)
+    assert against._compile_note("abc", "d156786", "cpu") == ""  # optimized here: both trees compile optimized
+    monkeypatch.setenv("MLS_MPM_COMPILE", "fast")
+    assert against._compile_note("abc", "d156786", "cpu") == (
+        "; d156786 predates MLS_MPM_COMPILE and compiles optimized, the working tree fast: "
+        "MLS_MPM_COMPILE=optimized compares like with like")
+    assert against._compile_note("abc", "d156786", "cuda") == ""  # a GPU compiles optimized in every tree
+
+
 LOOP_ROWS = ["forward() (whole pass)", "backward() (whole pass)", "forward: stress + P2G + check", "forward: grid",
              "forward: G2P", "reverse: G2P", "reverse: grid", "reverse: stress + P2G", "reverse: zero + check"]
 

@@ -5,6 +5,7 @@ a few lines of Python (one of them failing); and, where `mls-mpm morph` exists, 
 """
 import csv
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -176,6 +177,7 @@ def nothing_runs(monkeypatch):
     (["bench", "tradeoff", "s.toml", "--pairs", "split_two"], "bench tradeoff: --pairs applies to bench quality "
                                                               "only"),
     (["bench", "scaling", "--set", "sim.n_grid=32"], "bench scaling: --set applies to bench quality only"),
+    (["bench", "gradient", "--warm-cache"], "bench gradient: --warm-cache applies to bench quality only"),
     (["bench", "quality", "--out", "/proc/quality"], "--out /proc/quality: cannot create the folder"),
 ])
 def test_bench_quality_options_refused(argv, says, capsys, nothing_runs):
@@ -275,6 +277,38 @@ def test_quick_suite_with_faked_morphs_writes_the_table_and_csv(tmp_path, monkey
     assert rows[1]["iou"] == "" and rows[1]["result"].startswith("error: exit 1: ")
     assert float(rows[2]["wall_seconds"]) > 0
     assert sorted(p.name for p in out.iterdir()) == ["corner_disk", "letter_T", "quality.csv", "quality.md"]
+
+
+CACHE_PROBE = """
+import json, os, sys
+out = sys.argv[1]
+os.makedirs(out, exist_ok=True)
+cache = os.environ.get("TI_OFFLINE_CACHE_FILE_PATH")
+seen = {"cache": cache, "empty": cache is not None and os.path.isdir(cache) and not os.listdir(cache)}
+json.dump(dict(seen, iou=0.9, mass_error=0.0), open(os.path.join(out, "summary.json"), "w"))
+"""
+
+
+def test_each_pair_compiles_in_an_empty_cache_unless_warm(tmp_path, monkeypatch):
+    """A pair's process gets an empty Taichi offline cache of its own, removed afterwards (a new shape compiles
+    every kernel: the particle count is compiled in); --warm-cache leaves Taichi's cache as the user has it."""
+    monkeypatch.setattr(quality, "morph_command", lambda pair, out_dir, *a: [sys.executable, "-c", CACHE_PROBE,
+                                                                           str(out_dir)])
+    monkeypatch.delenv("TI_OFFLINE_CACHE_FILE_PATH", raising=False)
+    caches = []
+    for warm in (False, False, True):
+        out = tmp_path / f"p{len(caches)}"
+        row = quality.run_pair(PAIRS[0], out, "fast", 1, warm_cache=warm)
+        assert row["iou"] == 0.9, row
+        caches.append(json.loads((out / "summary.json").read_text()))
+    assert caches[0]["empty"] and caches[1]["empty"] and caches[0]["cache"] != caches[1]["cache"]
+    assert not os.path.exists(caches[0]["cache"]) and not os.path.exists(caches[1]["cache"])
+    assert caches[2]["cache"] is None
+    a = build_parser().parse_args(["bench", "quality", "--warm-cache"])
+    assert a.warm_cache is True
+    assert "--warm-cache" in quality.command_line("default", False, 1, "o", None, (), warm_cache=True)
+    assert "empty Taichi cache" in quality.table([], "fast", 1, 2, "c") and \
+        "Taichi's cache as it was" in quality.table([], "fast", 1, 2, "c", warm_cache=True)
 
 
 # ---- end to end ----------------------------------------------------------------------------------------------------

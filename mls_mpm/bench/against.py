@@ -18,6 +18,7 @@ import tempfile
 import threading
 from pathlib import Path
 
+from ..config import COMPILE_VARIABLE, compile_mode
 from .child import CASES, TINY_PARTICLES, TINY_STEPS, backend_here, case_label, case_steps, run_child
 from .gradient import MEMORY_CPU, measured_on
 from .output import BenchError, writable_file
@@ -57,7 +58,8 @@ def bench_against(rev, repeats=3, quick=False, arch="cpu", dims=(2, 3), out=None
                                                   lambda text: progress(f"{what}, tiny: {text}"), tiny=True)
             rows.append(dict(case=case_label(case, steps), runs=runs, base=base))
     when = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
-    lines = _table(rows, repeats, backend, f"old: {rev} = {old}; new: the working tree at {new}{dirty}; {when}")
+    lines = _table(rows, repeats, backend, f"old: {rev} = {old}; new: the working tree at {new}{dirty}; {when}"
+                   + _compile_note(commit, rev, backend))
     for line in lines:
         emit(line)
     if out:
@@ -65,6 +67,16 @@ def bench_against(rev, repeats=3, quick=False, arch="cpu", dims=(2, 3), out=None
 
         atomic_write(out, lambda fh: fh.write(("\n".join(lines) + "\n").encode()))
     return rows
+
+
+def _compile_note(commit, rev, backend):
+    """What the header says when the two trees cannot compile alike: REV from before MLS_MPM_COMPILE (14b3bd8)
+    always compiles optimized, while this tree compiles as compile_mode() says (the children are told it)."""
+    config = _git("show", f"{commit}:mls_mpm/config.py").stdout
+    if backend != "cpu" or compile_mode() == "optimized" or COMPILE_VARIABLE in config:
+        return ""
+    return (f"; {rev} predates {COMPILE_VARIABLE} and compiles optimized, the working tree {compile_mode()}: "
+            f"{COMPILE_VARIABLE}=optimized compares like with like")
 
 
 def _table(rows, repeats, backend, revisions):

@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..config import COMPILE_VARIABLE, compile_mode
+
 # The reference sizes: f32 at 64^2 with ~8k particles, and the thesis program's f64 32^2 / 1,245; in 3D (issue 12)
 # f32 at 32^3 with ~16k particles and at 64^3 with ~100k, 30 steps each, and one window of the 3D successor's
 # settings (32^3, 8 particles per cell volume in a ball of radius 8 cells, dt = 1/120, drag 0.5, a control
@@ -128,7 +130,8 @@ def run_child(case_name, path, steps, tiny=False, tree=None):
         steps = TINY_STEPS
     code = ("import json, mls_mpm; print(json.dumps({'mls_mpm': mls_mpm.__file__}), flush=True); "
             f"from mls_mpm.bench.child import measure; measure({case!r}, {path!r}, {steps})")
-    env = {**os.environ, "TI_LOG_LEVEL": "error"}
+    # the compile mode this process resolved, said explicitly: an older tree whose default differs compiles alike
+    env = {**os.environ, "TI_LOG_LEVEL": "error", COMPILE_VARIABLE: compile_mode()}
     if tree is not None:
         env["PYTHONPATH"] = os.pathsep.join(p for p in (str(tree), env.get("PYTHONPATH")) if p)
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, cwd=tree)

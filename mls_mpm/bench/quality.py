@@ -5,7 +5,10 @@ PAIRS lists them with the category each covers and what it tests. Every pair run
 process of its own, `workers` at a time, each with cores // workers Taichi threads (`--set sim.threads=T`), into
 <out>/<name>/, and the figures are read back from its summary.json: iou, mass_error (total-variation distance of
 the node masses on the finest loss grid), mass_outside_target, color_error for a colour pair, and the wall time
-of the whole process (start-up and compilation included), which is what the targets bound. A pair whose process
+of the whole process (start-up and compilation included), which is what the targets bound. Each pair compiles in
+an empty Taichi offline cache of its own (removed afterwards), as a shape of the user's own does (the particle count
+is compiled into the kernels); warm_cache=True (--warm-cache) uses the user's cache instead, where an earlier run
+of the same pair leaves every kernel compiled. A pair whose process
 fails gets a row with its last stderr line and the suite goes on. The table (quality.md, ready for
 BENCHMARKS.md) and quality.csv are written atomically once every pair has finished.
 """
@@ -15,8 +18,10 @@ import json
 import os
 import shlex
 import statistics
+import shutil
 import subprocess
 import sys
+import tempfile
 import time
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass
@@ -121,11 +126,23 @@ def morph_command(pair, out_dir, quality, threads, overrides=()):
     return cmd
 
 
-def run_pair(pair, out_dir, quality, threads, overrides=()):
-    """Morph one pair in its own process; its row (figures as numbers, "result" judged later by `judge`)."""
+CACHE_VARIABLE = "TI_OFFLINE_CACHE_FILE_PATH"  # where Taichi keeps the kernels it compiled
+
+
+def run_pair(pair, out_dir, quality, threads, overrides=(), warm_cache=False):
+    """Morph one pair in its own process; its row (figures as numbers, "result" judged later by `judge`).
+    warm_cache=False: in an empty Taichi cache of its own (module docstring)."""
+    env = {**os.environ, "TI_LOG_LEVEL": "error"}
+    cache = None if warm_cache else tempfile.mkdtemp(prefix="mls_mpm_quality_cache_")
+    if cache is not None:
+        env[CACHE_VARIABLE] = cache
     t0 = time.perf_counter()
-    res = subprocess.run(morph_command(pair, out_dir, quality, threads, overrides), capture_output=True, text=True,
-                         env={**os.environ, "TI_LOG_LEVEL": "error"})
+    try:
+        res = subprocess.run(morph_command(pair, out_dir, quality, threads, overrides), capture_output=True,
+                             text=True, env=env)
+    finally:
+        if cache is not None:
+            shutil.rmtree(cache, ignore_errors=True)
     row = {"pair": pair.name, "category": pair.category, "tests": pair.tests,
            "wall_seconds": time.perf_counter() - t0}
     summary_path = Path(out_dir) / "summary.json"
@@ -172,10 +189,12 @@ def suite_figures(rows):
     return out
 
 
-def command_line(quality, quick, workers, out, names, overrides):
+def command_line(quality, quick, workers, out, names, overrides, warm_cache=False):
     """The `mls-mpm bench quality` command that repeats this run."""
     argv = ["mls-mpm", "bench", "quality"] + (["--quick"] if quick else []) + ["--quality", quality, "--workers",
                                                                                 str(workers), "--out", str(out)]
+    if warm_cache:
+        argv.append("--warm-cache")
     if names is not None:
         argv += ["--pairs", ",".join(names)]
     for ov in overrides:
@@ -195,13 +214,15 @@ def _cell(text):
     return str(text).replace("|", "\\|")
 
 
-def table(rows, quality, workers, threads, command):
+def table(rows, quality, workers, threads, command, warm_cache=False):
     """quality.md: the settings line, one row per pair, the suite's worst and median, the CPU and the command."""
     target = TARGETS[quality]
     n_pass = sum(r["result"] == "pass" for r in rows)
+    cache = ("Taichi's cache as it was (kernels an earlier run compiled are not compiled again)" if warm_cache else
+             "each in an empty Taichi cache (every kernel compiles, as for a shape of your own)")
     lines = [f"`mls-mpm morph --quality {quality}` on {_count(len(rows), 'shape pair')} (scenes/images/pairs/), "
-             f"{workers} at a time, {_count(threads, 'Taichi thread')} each. Target per pair: {target.describe()} "
-             "(wall: the whole process, start-up and compilation included).", "",
+             f"{workers} at a time, {_count(threads, 'Taichi thread')} each, {cache}. Target per pair: "
+             f"{target.describe()} (wall: the whole process, start-up and compilation included).", "",
              "| pair | tests | iou | mass_error | mass outside | colour error | wall s | result |",
              "|---|---|---|---|---|---|---|---|"]
     for r in rows:
@@ -236,9 +257,10 @@ def _csv_text(rows):
     return text.getvalue()
 
 
-def bench_quality(quality=None, quick=False, workers=1, out=None, names=None, overrides=(), emit=print):
+def bench_quality(quality=None, quick=False, workers=1, out=None, names=None, overrides=(), emit=print,
+                  warm_cache=False):
     """Run the suite (or the pairs named, or the quick subset at fast quality); write quality.md and quality.csv
-    in out (default renders/bench_quality/); returns the rows in suite order."""
+    in out (default renders/bench_quality/); returns the rows in suite order. warm_cache: see run_pair."""
     if quick and names is not None:
         raise BenchError("bench quality: --quick and --pairs: --quick picks its own pairs; give one of them")
     if workers < 1:
@@ -253,13 +275,13 @@ def bench_quality(quality=None, quick=False, workers=1, out=None, names=None, ov
                          "python scenes/make_images.py")
     out = writable_folder(out or DEFAULT_OUT)
     threads = threads_per_worker(workers)
-    command = command_line(quality, quick, workers, out, names, overrides)
+    command = command_line(quality, quick, workers, out, names, overrides, warm_cache)
     emit(f"quality benchmark: {_count(len(pairs), 'pair')} at --quality {quality}, {workers} at a time with "
-         f"{_count(threads, 'thread')} each -> {out}")
+         f"{_count(threads, 'thread')} each, {'a warm' if warm_cache else 'each in an empty'} Taichi cache -> {out}")
     rows = {}
     pool = ThreadPoolExecutor(max_workers=workers)
     try:
-        running = [pool.submit(run_pair, p, out / p.name, quality, threads, overrides) for p in pairs]
+        running = [pool.submit(run_pair, p, out / p.name, quality, threads, overrides, warm_cache) for p in pairs]
         for done, future in enumerate(as_completed(running), 1):
             row = future.result()
             row["result"] = judge(row, TARGETS[quality])
@@ -270,7 +292,7 @@ def bench_quality(quality=None, quick=False, workers=1, out=None, names=None, ov
     finally:  # Ctrl-C: pairs not yet started are dropped; running ones got the signal too (same process group)
         pool.shutdown(wait=True, cancel_futures=True)
     rows = [rows[p.name] for p in pairs]
-    md = table(rows, quality, workers, threads, command)
+    md = table(rows, quality, workers, threads, command, warm_cache)
     atomic_write(out / "quality.md", lambda fh: fh.write(md.encode()))
     atomic_write(out / "quality.csv", lambda fh: fh.write(_csv_text(rows).encode()))
     emit("")
