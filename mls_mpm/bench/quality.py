@@ -17,8 +17,8 @@ import io
 import json
 import os
 import shlex
-import statistics
 import shutil
+import statistics
 import subprocess
 import sys
 import tempfile
