@@ -29,8 +29,8 @@ def taichi_f64_module():
     runtime.ensure(mls_mpm.SimConfig(dtype="f64", arch="cpu"), tape=False)
 
 
-# Taichi's IR optimizations off (mls_mpm.config.compile_mode's default, said here so that a shell's setting of it
-# is the only way to change it) for this process and the CLIs and children it starts: kernels compile 3-7x faster,
+# Taichi's IR optimizations off (mls_mpm.config.compile_mode; its default too, set here so that the suite keeps it
+# whatever that default becomes) for this process and the CLIs and children it starts: kernels compile 3-7x faster,
 # with the same results to the bit (tests/test_runtime.py checks that against the optimized build);
 # `MLS_MPM_COMPILE=optimized pytest` runs the suite optimized
 os.environ.setdefault("MLS_MPM_COMPILE", "fast")

@@ -153,8 +153,8 @@ np.savez(sys.argv[1], **out)
 
 
 def test_fast_compile_gives_the_optimized_results_to_the_bit(tmp_path):
-    """MLS_MPM_COMPILE=fast (the default, and what this suite runs under, conftest) against the optimized build: the small
-    2D and 3D test scenes (float64 2D on the serial schedule, 3D on the parallel, and float32 2D on the parallel),
+    """MLS_MPM_COMPILE=fast (the default, and what this suite runs under, conftest) against the optimized build: the
+    small 2D and 3D test scenes (float64 2D on the serial schedule, 3D on the parallel, and float32 2D on the parallel),
     run in two child processes side by side, give the same final state, loss, dL/dF_pc and dL/dx0
     to the bit, so the suite's verdicts hold for what users run."""
     script = tmp_path / "modes.py"

@@ -12,12 +12,12 @@ of the same pair leaves every kernel compiled. A pair whose process
 fails gets a row with its last stderr line and the suite goes on. The table (quality.md, ready for
 BENCHMARKS.md) and quality.csv are written atomically once every pair has finished.
 """
+import contextlib
 import csv
 import io
 import json
 import os
 import shlex
-import shutil
 import statistics
 import subprocess
 import sys
@@ -133,16 +133,13 @@ def run_pair(pair, out_dir, quality, threads, overrides=(), warm_cache=False):
     """Morph one pair in its own process; its row (figures as numbers, "result" judged later by `judge`).
     warm_cache=False: in an empty Taichi cache of its own (module docstring)."""
     env = {**os.environ, "TI_LOG_LEVEL": "error"}
-    cache = None if warm_cache else tempfile.mkdtemp(prefix="mls_mpm_quality_cache_")
-    if cache is not None:
-        env[CACHE_VARIABLE] = cache
     t0 = time.perf_counter()
-    try:
+    with (contextlib.nullcontext() if warm_cache else
+          tempfile.TemporaryDirectory(prefix="mls_mpm_quality_cache_", ignore_cleanup_errors=True)) as cache:
+        if cache is not None:
+            env[CACHE_VARIABLE] = cache
         res = subprocess.run(morph_command(pair, out_dir, quality, threads, overrides), capture_output=True,
                              text=True, env=env)
-    finally:
-        if cache is not None:
-            shutil.rmtree(cache, ignore_errors=True)
     row = {"pair": pair.name, "category": pair.category, "tests": pair.tests,
            "wall_seconds": time.perf_counter() - t0}
     summary_path = Path(out_dir) / "summary.json"
