@@ -8,6 +8,11 @@ built in a fresh process with an empty Taichi offline cache of its own, so every
 its first forward and of its first manual backward are the compile times (plus one run, negligible beside them),
 then the best of 3 forward and backward passes gives ms per step. The two modes alternate, R rounds; the table
 shows the median of each figure and the ratio fast / optimized, with the CPU model.
+
+Each child also hashes its results (the loss, the final state, dL/dF_pc and dL/dx0 of its first pass): the column
+"results" says whether every child of a case, in either mode, got the same bits, and the script exits 1 where they
+differ. This is where the 3D optimized build is checked against the default fast one (a 3D optimized compile takes
+2-3 minutes, too long for the test suite; tests/test_runtime.py compares the modes in 2D).
 """
 import argparse
 import json
@@ -24,7 +29,8 @@ from mls_mpm.bench.child import CASES, THREADS, case_label, cpu_model  # noqa: E
 
 MODES = ("optimized", "fast")
 CHILD = r"""
-import json, sys, time
+import hashlib, json, sys, time
+import numpy as np
 from mls_mpm.bench.child import CASES, scene_of
 from mls_mpm.simulator import Simulator
 
@@ -33,10 +39,14 @@ steps = int(sys.argv[2])
 cfg, x0, loss, controls = scene_of(case, steps)
 sim = Simulator(cfg, x0, loss=loss)
 t0 = time.perf_counter()
-sim.forward(controls)
+loss_value = sim.forward(controls)
 t1 = time.perf_counter()
-sim.backward()
+grad = sim.backward()
 t2 = time.perf_counter()
+digest = hashlib.sha256(np.float64(loss_value).tobytes())
+for key, value in sorted(sim.state(steps).items()):
+    digest.update(key.encode() + np.ascontiguousarray(value).tobytes())
+digest.update(np.ascontiguousarray(grad).tobytes() + np.ascontiguousarray(sim.grad_x0).tobytes())
 fwd, bwd = [], []
 for _ in range(3):
     a = time.perf_counter()
@@ -47,7 +57,7 @@ for _ in range(3):
     fwd.append((b - a) / steps * 1e3)
     bwd.append((c - b) / steps * 1e3)
 print(json.dumps({"compile_forward_s": t1 - t0, "compile_backward_s": t2 - t1, "forward_ms": min(fwd),
-                  "backward_ms": min(bwd)}))
+                  "backward_ms": min(bwd), "results": digest.hexdigest()}))
 """
 FIGURES = ("compile_forward_s", "compile_backward_s", "forward_ms", "backward_ms")
 
@@ -72,8 +82,9 @@ def main(argv=None):
     cases = [("small", 100)] if args.quick else [("small", 100), ("large", 100), ("3d", 30)]
     print(f"CPU: {cpu_model()}; Taichi on {THREADS} threads; {rounds} round(s), medians; a cold Taichi cache per "
           "process", flush=True)
-    print("\n| case | mode | compile forward s | compile backward s | forward ms/step | backward ms/step |")
-    print("|---|---|---|---|---|---|")
+    print("\n| case | mode | compile forward s | compile backward s | forward ms/step | backward ms/step | results |")
+    print("|---|---|---|---|---|---|---|")
+    differ = []
     for name, steps in cases:
         runs = {mode: [] for mode in MODES}
         for _ in range(rounds):
@@ -84,11 +95,20 @@ def main(argv=None):
         for mode in MODES:
             m = med[mode]
             print(f"| {label} | {mode} | {m['compile_forward_s']:.1f} | {m['compile_backward_s']:.1f} | "
-                  f"{m['forward_ms']:.3f} | {m['backward_ms']:.3f} |")
+                  f"{m['forward_ms']:.3f} | {m['backward_ms']:.3f} | {runs[mode][0]['results'][:12]} |")
         ratio = {k: med["fast"][k] / med["optimized"][k] for k in FIGURES}
+        same = len({r["results"] for mode in MODES for r in runs[mode]}) == 1
+        if not same:
+            differ.append(label)
         print(f"| {label} | fast / optimized | {ratio['compile_forward_s']:.2f}x | {ratio['compile_backward_s']:.2f}x "
-              f"| {ratio['forward_ms']:.2f}x | {ratio['backward_ms']:.2f}x |", flush=True)
+              f"| {ratio['forward_ms']:.2f}x | {ratio['backward_ms']:.2f}x | "
+              f"{'identical' if same else 'DIFFER'} |", flush=True)
+    if differ:
+        print(f"\nresults differ between the compile modes (or between runs): {', '.join(differ)}")
+        return 1
+    print("\nresults: identical to the bit in both modes, every case and round")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())
