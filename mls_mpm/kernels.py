@@ -132,13 +132,21 @@ def scalarized() -> bool:
     return bool(impl.current_cfg().force_scalarize_matrix)
 
 
+def spirv() -> bool:
+    """Whether the running Taichi compiles to SPIR-V (Vulkan): see axis0."""
+    return impl.current_cfg().arch == ti.vulkan
+
+
 @ti.func
 def axis0(w, i0):
     """w[i0, 0], the axis-0 weight of stencil row i0. Where Taichi scalarizes matrices (the 3D Tape oracle) and i0
-    is the runtime loop's, by ti.select: its autodiff cannot take a matrix index that varies at run time. Else by
-    index: the selects make the 3D production kernels compile about 3x slower."""
+    is the runtime loop's, by ti.select: its autodiff cannot take a matrix index that varies at run time. On
+    Vulkan by ti.select too: Taichi 1.7.4's SPIR-V code generator fails on a kernel whose parallel loops each index
+    a matrix at run time ('Value "tmpN" does not yet exist': the constants of one loop's index arithmetic are shared
+    with the next loop, a function of its own in SPIR-V). Else by index: the selects make the 3D production kernels
+    compile about 3x slower on a CPU."""
     v = w[0, 0]
-    if ti.static(isinstance(i0, int) or not scalarized()):
+    if ti.static(isinstance(i0, int) or not (scalarized() or spirv())):
         v = w[i0, 0]
     else:
         for j in ti.static(range(1, STENCIL)):
