@@ -33,12 +33,8 @@ def splat_reverse(s: ti.template(), g: ti.template(), a: ti.template(), f: ti.i3
         w, dw = weights(fx)
         value = splat_value(s, g, p)
         adj_x = ti.Vector.zero(float, s.dim)
-        if ti.static(s.dim == 2):  # the stencil's outer loop: see mls_mpm.kernels.slab_offsets
-            for i0 in ti.static(range(STENCIL)):
-                adj_x = splat_slab_gather(g, base, w, dw, value, i0, adj_x)
-        else:
-            for i0 in range(STENCIL):
-                adj_x = splat_slab_gather(g, base, w, dw, value, i0, adj_x)
+        for i0 in range(STENCIL):  # the stencil's outer loop, a runtime loop: see mls_mpm.kernels
+            adj_x = splat_slab_gather(g, base, w, dw, value, i0, adj_x)
         add_own(a.adj_x, f % 2, p, adj_x)  # particle p's own entry: state.add_own, not an atomic add
 
 

@@ -47,12 +47,8 @@ def g2p_particle_reverse(s: ti.template(), a: ti.template(), f, p, lane):
         adj_C_new = a.adj_C[src, p] + s.dt * adj_F_next @ Fs.transpose()
         k = 3.0 * s.inv_dx * s.inv_dx
         adj_x = adj_x_next
-        if ti.static(s.dim == 2):  # the stencil's outer loop: see mls_mpm.kernels.slab_offsets
-            for i0 in ti.static(range(STENCIL)):
-                adj_x = g2p_slab_reverse(s, a, f, lane, base, fx, w, dw, adj_v_new, adj_C_new, i0, adj_x)
-        else:
-            for i0 in range(STENCIL):
-                adj_x = g2p_slab_reverse(s, a, f, lane, base, fx, w, dw, adj_v_new, adj_C_new, i0, adj_x)
+        for i0 in range(STENCIL):  # the stencil's outer loop, a runtime loop: see mls_mpm.kernels
+            adj_x = g2p_slab_reverse(s, a, f, lane, base, fx, w, dw, adj_v_new, adj_C_new, i0, adj_x)
         adj_x -= k * adj_C_new.transpose() @ s.v[f + 1, p]  # v^{n+1} = sum_i N v_i (eq 18), stored by the forward
         adj_F = (ti.Matrix.identity(float, s.dim) + s.dt * s.C[f + 1, p]).transpose() @ adj_F_next
         add_own(a.adj_x, dst, p, adj_x)  # particle p's own entries: state.add_own, not atomic adds
@@ -101,12 +97,8 @@ def p2g_particle_reverse(s: ti.template(), a: ti.template(), f, p):
         adj_x = ti.Vector.zero(float, s.dim)
         sum_adj_p = ti.Vector.zero(float, s.dim)  # sum_i N dL/dp_i
         Q = ti.Matrix.zero(float, s.dim, s.dim)  # sum_i N dL/dp_i (o - 1)^T
-        if ti.static(s.dim == 2):  # the stencil's outer loop: see mls_mpm.kernels.slab_offsets
-            for i0 in ti.static(range(STENCIL)):
-                adj_x, sum_adj_p, Q = p2g_slab_reverse(s, a, base, fx, w, dw, G, mv, i0, adj_x, sum_adj_p, Q)
-        else:
-            for i0 in range(STENCIL):
-                adj_x, sum_adj_p, Q = p2g_slab_reverse(s, a, base, fx, w, dw, G, mv, i0, adj_x, sum_adj_p, Q)
+        for i0 in range(STENCIL):  # the stencil's outer loop, a runtime loop: see mls_mpm.kernels
+            adj_x, sum_adj_p, Q = p2g_slab_reverse(s, a, base, fx, w, dw, G, mv, i0, adj_x, sum_adj_p, Q)
         adj_G = s.dx * (Q - sum_adj_p.outer_product(fx - 1.0))  # sum_i N dL/dp_i (x_i - x_p)^T (eq 60)
         adj_x -= G.transpose() @ sum_adj_p
         adj_v = drag * sum_adj_p

@@ -8,15 +8,18 @@ from .config import STENCIL
 
 
 # Stencil loops: axis 0 of the 4^dim nodes is the outer loop, one "slab" of 4^(dim - 1) nodes per step of it,
-# unrolled (ti.static). In 2D the outer loop is unrolled too (16 nodes: ti.ad.Tape differentiates only unrolled
-# loops, and it is the test oracle). In 3D it is a runtime loop: the full 64-node unroll of the P2G, G2P and
-# reverse kernels with the 3D stress takes LLVM over 20 minutes to compile, a slab of 16 seconds. Each kernel
-# writes its outer loop as
+# unrolled (ti.static). In the 2D forward kernels the outer loop is unrolled too (16 nodes: Taichi 1.7.4's
+# ti.ad.Tape, the test oracle, differentiates the 2D runtime loop only with matrices scalarized). In 3D, and in the
+# reverse kernels (adjoint/) in 2D as well, it is a runtime loop: the full 64-node unroll of the P2G, G2P and
+# reverse kernels with the 3D stress takes LLVM over 20 minutes to compile, a slab of 16 seconds; the 2D reverse
+# kernels, which no Tape differentiates, compile 1.9x (fast) to 2.9x (optimized) faster so, with the same run time
+# and bit-identical results (BENCHMARKS.md, "Compile time"). A forward kernel writes its outer loop as
 #     if ti.static(dim == 2):
 #         for i0 in ti.static(range(STENCIL)): acc = slab(..., i0, acc)
 #     else:
 #         for i0 in range(STENCIL): acc = slab(..., i0, acc)
-# with the accumulators passed through the slab function, so that every sum adds the nodes in the same order.
+# a reverse kernel as the second branch alone, with the accumulators passed through the slab function, so that
+# every sum adds the nodes in the same order.
 # Inside a slab, the sums of u_i (o_i - 1)^T (G2P's eq 19, reverse P2G's eq 60) run row by row, a row being 4 nodes
 # along the last axis (row_offsets; 2D: the slab is one row): a middle axis's offset, shared by a row, multiplies
 # the row's sum once (outer_slab), not each node's (3D G2P 1.1x faster on one thread).
