@@ -68,6 +68,7 @@ NO_TWIN = {
         "svd_rotation": "polar_rotation's starting guess: its Newton steps make dR independent of it",
         "higham_rotation": "polar_rotation's other starting guess: its Newton step makes dR independent of it",
         "higham_step": "one step of higham_rotation (a starting guess: no derivative needed)",
+        "inverse_cbrt": "higham_step's scaling |det X|^(-1/3) (a starting guess: no derivative needed)",
         "higham_steps": "an integer step count for higham_rotation: nothing to differentiate",
         "higham_fewer": "a compile-time step count by float type (Python): nothing to differentiate",
         "newton_rotation": "polar_rotation's Newton step: rotation_adjoint differentiates the converged R",

@@ -11,6 +11,8 @@ uses bit casts).
 import taichi as ti
 from taichi.lang import impl
 
+from .kernels import spirv
+
 
 # 3x3 products written as expressions: Taichi's `@` accumulates into local variables, which ti.ad.Tape turns
 # into stacks and compiles some 30 times slower (34 s against 1.2 s for one Newton step).
@@ -197,13 +199,28 @@ def higham_rotation(F, steps):
 
 
 @ti.func
+def inverse_cbrt(a):
+    """a^(-1/3) for a > 0. On Vulkan in float64, whose SPIR-V has no 64-bit pow: a float32 pow, then two Newton
+    steps y <- y (4 - a y^3) / 3 in float64 (each squares the relative error: 1e-7 -> 1e-14 -> round-off; a must
+    lie in float32's normal range, as any det of a simulated F does)."""
+    y = a * 0.0
+    if ti.static(spirv() and impl.current_cfg().default_fp == ti.f64):
+        y = ti.cast(ti.cast(a, ti.f32) ** ti.cast(-1.0 / 3.0, ti.f32), ti.f64)
+        for _ in ti.static(range(2)):
+            y = y * (4.0 - a * y * y * y) / 3.0
+    else:
+        y = a ** (-1.0 / 3.0)
+    return y
+
+
+@ti.func
 def higham_step(X, scaled):
     """One step of higham_rotation: (z X + cof(X) / (z det X)) / 2, z = |det X|^(-1/3) if scaled, else 1."""
     cX = cofactor(X)
     d = X[:, 0].dot(cX[:, 0])  # det X: stays > 0 (each iterate is F's polar factor times an SPD matrix)
     z = 1.0 + 0.0 * d
     if scaled:
-        z = ti.abs(d) ** (-1.0 / 3.0)
+        z = inverse_cbrt(ti.abs(d))
     return 0.5 * (z * X + cX / (z * d))
 
 
