@@ -17,7 +17,6 @@ import math
 import numpy as np
 
 from . import problem as problems
-from . import runtime
 from .errors import UserError
 from .losses import OT_KINDS, ColorLoss, PositionLoss
 
@@ -94,14 +93,13 @@ def reduced(scene, steps, particles):
 def check_scene(scene, args, emit=print, seed=0):
     """Print relative errors; true when both are within tolerance (or below the round-off floor)."""
     check_options(args.steps, args.particles, args.tol_tape, args.tol_fd)
-    from .simulator import Simulator
+    from .simulator import Simulator, tape_refused
 
     cfg, x0, loss = reduced(scene, args.steps, args.particles)
     sim = Simulator(cfg, x0, loss=loss)
-    if cfg.dim == 3 and runtime.running_arch() == "vulkan":
-        raise CheckError(f"check {scene.name}: the ti.ad.Tape oracle gives wrong 3D gradients on Vulkan (Taichi "
-                         "1.7.4; the manual gradient is right there, tests/test_gpu.py); run the check with "
-                         "--set sim.arch=cpu or cuda")
+    why = tape_refused(cfg)  # before the passes compile: gradient_tape would refuse only after them
+    if why:
+        raise CheckError(f"check {scene.name}: {why}; run the check with --set sim.arch=cpu or cuda")
     rng = np.random.default_rng(seed)
     c = 0.02 * rng.standard_normal(sim.control_shape)
     L = sim.forward(c)
