@@ -12,7 +12,7 @@ from .config import STENCIL
 # ti.ad.Tape, the test oracle, differentiates the 2D runtime loop only with matrices scalarized). In 3D, and in the
 # reverse kernels (adjoint/) in 2D as well, it is a runtime loop: the full 64-node unroll of the P2G, G2P and
 # reverse kernels with the 3D stress takes LLVM over 20 minutes to compile, a slab of 16 seconds; the 2D reverse
-# kernels, which no Tape differentiates, compile 1.9x (fast) to 2.9x (optimized) faster so, with the same run time
+# kernels, which no Tape differentiates, compile 1.7-2.9x faster so (either mode), with the same run time
 # and bit-identical results (BENCHMARKS.md, "Compile time"). A forward kernel writes its outer loop as
 #     if ti.static(dim == 2):
 #         for i0 in ti.static(range(STENCIL)): acc = slab(..., i0, acc)
