@@ -51,7 +51,7 @@ TWINS = {
 # module -> {forward function without a twin: why}
 NO_TWIN = {
     "transfer": {
-        "control_sum": "F + F_pc is linear: p2g_particle_reverse adds dL/dF_p to dL/dF_pc (eq 55)",
+        "control_sum": "F + F_pc is linear: adjoint.step.particle_adjoint adds dL/dF_p to dL/dF_pc (eq 55)",
         "affine_momentum": "differentiated inline by p2g_particle_reverse (eq 54, 57-58)",
         "particle_G": "differentiated inline by p2g_particle_reverse (eq 54, 57-58, 61)",
         "scatter_node": "its reverse is the gather of dL/dm_i, dL/dp_i inside p2g_particle_reverse (eq 59-65)",

@@ -22,8 +22,10 @@ def scatter_adj_node(s: ti.template(), a: ti.template(), lane, I, adj_v):
 
 
 @ti.func
-def g2p_particle_reverse(s: ti.template(), a: ti.template(), f, p, lane):
-    """From dL/d(x, v, C, F) of step f + 1 (slot (f+1) % 2): dL/dv_i^f and the G2P part of dL/dx_p^f, dL/dF_p^f.
+def g2p_particle_reverse(s: ti.template(), a: ti.template(), f, p, lane, adj_x_next, adj_v_next, adj_C_next,
+                         adj_F_next):
+    """From dL/d(x, v, C, F)_p of step f + 1: dL/dv_i^f (scattered) and the G2P parts of dL/dx_p^f, dL/dF_p^f
+    (returned; zero for a particle whose stencil leaves the grid, which G2P skips). G2P reads neither v^f nor C^f.
 
     With adj_v_new = dL/dv^{n+1} + dt dL/dx^{n+1} (eq 21) and adj_C_new = dL/dC^{n+1} + dt dL/dF^{n+1} (F + F_pc)^T
     (eq 20), the adjoints of G2P's v_new and C_new:
@@ -36,23 +38,20 @@ def g2p_particle_reverse(s: ti.template(), a: ti.template(), f, p, lane):
     """
     x = s.x[f, p]
     base, fx = stencil(x, s.inv_dx)
+    adj_x = ti.Vector.zero(float, s.dim)
+    adj_F = ti.Matrix.zero(float, s.dim, s.dim)
     if inside(base, s.n_grid):
-        src = (f + 1) % 2
-        dst = f % 2
         w, dw = weights(fx)
         Fs = control_sum(s, f, p)
-        adj_x_next = a.adj_x[src, p]
-        adj_F_next = a.adj_F[src, p]
-        adj_v_new = a.adj_v[src, p] + s.dt * adj_x_next
-        adj_C_new = a.adj_C[src, p] + s.dt * adj_F_next @ Fs.transpose()
+        adj_v_new = adj_v_next + s.dt * adj_x_next
+        adj_C_new = adj_C_next + s.dt * adj_F_next @ Fs.transpose()
         k = 3.0 * s.inv_dx * s.inv_dx
         adj_x = adj_x_next
         for i0 in range(STENCIL):  # the stencil's outer loop, a runtime loop: see mls_mpm.kernels
             adj_x = g2p_slab_reverse(s, a, f, lane, base, fx, w, dw, adj_v_new, adj_C_new, i0, adj_x)
         adj_x -= k * adj_C_new.transpose() @ s.v[f + 1, p]  # v^{n+1} = sum_i N v_i (eq 18), stored by the forward
         adj_F = (ti.Matrix.identity(float, s.dim) + s.dt * s.C[f + 1, p]).transpose() @ adj_F_next
-        add_own(a.adj_x, dst, p, adj_x)  # particle p's own entries: state.add_own, not atomic adds
-        add_own(a.adj_F, dst, p, adj_F)
+    return adj_x, adj_F
 
 
 @ti.func
@@ -74,19 +73,23 @@ def g2p_slab_reverse(s: ti.template(), a: ti.template(), f, lane, base, fx, w, d
 
 @ti.func
 def p2g_particle_reverse(s: ti.template(), a: ti.template(), f, p):
-    """From dL/dm_i, dL/dp_i of grid f: the P2G part of dL/d(x, v, C, F)_p^f, and dL/dF_pc of control f / stride.
+    """From dL/dm_i, dL/dp_i of grid f: the P2G parts of dL/d(x, v, C, F)_p^f, returned (zero for a particle whose
+    stencil leaves the grid, which P2G skips).
 
     dL/dv_p += sum_i N m_p (1 - dt gamma) dL/dp_i  (eq 71)
     dL/dC_p += m_p sum_i N dL/dp_i dpos^T  (eq 60)
     dL/dx_p += sum_i dN [m_p dL/dm_i + dL/dp_i . (m_p v_p (1 - dt gamma) + G dpos)] - N G^T dL/dp_i  (eq 64-65)
     dL/dG = sum_i N dL/dp_i dpos^T; with A = P (F + F_pc)^T and G = -3/dx^2 dt V^0 A + m_p C:
     dL/d(F + F_pc) += dL/dA^T P + dP/dF : (dL/dA (F + F_pc))  (eq 54, 57-58)
-    Then dL/dF_pc^k += dL/dF_p^f when f = k * stride (eq 55), so g2p_particle_reverse must run first.
+    The caller adds the G2P part and then dL/dF_pc^k += dL/dF_p^f when f = k * stride (eq 55).
     """
     x = s.x[f, p]
     base, fx = stencil(x, s.inv_dx)
+    adj_x = ti.Vector.zero(float, s.dim)
+    adj_v = ti.Vector.zero(float, s.dim)
+    adj_C = ti.Matrix.zero(float, s.dim, s.dim)
+    adj_Fs = ti.Matrix.zero(float, s.dim, s.dim)
     if inside(base, s.n_grid):
-        dst = f % 2
         w, dw = weights(fx)
         Fs = control_sum(s, f, p)
         R = polar_rotation(Fs)  # once: the stress, G and the stress's reverse all need it
@@ -94,7 +97,6 @@ def p2g_particle_reverse(s: ti.template(), a: ti.template(), f, p):
         G = affine_momentum(s, f, p, Fs, P)
         drag = s.m_p * (1.0 - s.dt * s.gamma)
         mv = drag * s.v[f, p]
-        adj_x = ti.Vector.zero(float, s.dim)
         sum_adj_p = ti.Vector.zero(float, s.dim)  # sum_i N dL/dp_i
         Q = ti.Matrix.zero(float, s.dim, s.dim)  # sum_i N dL/dp_i (o - 1)^T
         for i0 in range(STENCIL):  # the stencil's outer loop, a runtime loop: see mls_mpm.kernels
@@ -104,12 +106,8 @@ def p2g_particle_reverse(s: ti.template(), a: ti.template(), f, p):
         adj_v = drag * sum_adj_p
         adj_A = -3.0 * s.inv_dx * s.inv_dx * s.dt * s.vol * adj_G
         adj_Fs = adj_A.transpose() @ P + rotated_stress_reverse(Fs, R, adj_A @ Fs, s.mu, s.lam)
-        add_own(a.adj_x, dst, p, adj_x)  # particle p's own entries: state.add_own, not atomic adds
-        add_own(a.adj_v, dst, p, adj_v)
-        add_own(a.adj_C, dst, p, s.m_p * adj_G)
-        add_own(a.adj_F, dst, p, adj_Fs)
-        if f % s.stride == 0:
-            add_own(a.adj_F_pc, f // s.stride, p, a.adj_F[dst, p])
+        adj_C = s.m_p * adj_G
+    return adj_x, adj_v, adj_C, adj_Fs
 
 
 @ti.func
@@ -151,23 +149,36 @@ def record_fault_reverse(s: ti.template(), a: ti.template(), f, p):
 
 
 @ti.func
-def check_particle_reverse(s: ti.template(), a: ti.template(), f, p):
-    """Record particle p if its adjoint of step f holds NaN or Inf (twin of mls_mpm.transfer.check_particle)."""
-    slot = f % 2
-    total = a.adj_x[slot, p].sum() + a.adj_v[slot, p].sum() + a.adj_C[slot, p].sum() + a.adj_F[slot, p].sum()
+def check_particle_reverse(s: ti.template(), a: ti.template(), f, p, adj_x, adj_v, adj_C, adj_F):
+    """Record particle p if its adjoint dL/d(x, v, C, F)_p^f holds NaN or Inf (twin of
+    mls_mpm.transfer.check_particle)."""
+    total = adj_x.sum() + adj_v.sum() + adj_C.sum() + adj_F.sum()
     if ti.math.isnan(total) or ti.math.isinf(total):
         record_fault_reverse(s, a, f, p)
 
 
 @ti.kernel
 def g2p_reverse(s: ti.template(), a: ti.template(), f: ti.i32):
-    """Reverse G2P of step f (twin of mls_mpm.transfer.g2p)."""
+    """Reverse G2P of step f (twin of mls_mpm.transfer.g2p): dL/d(x, v, C, F) of step f + 1 from slot (f + 1) % 2,
+    its G2P parts added to slot f % 2 (the reverse pass itself keeps them in registers: adjoint.step)."""
     for p in range(s.n_particles):
-        g2p_particle_reverse(s, a, f, p, 0)
+        src, dst = (f + 1) % 2, f % 2
+        adj_x, adj_F = g2p_particle_reverse(s, a, f, p, 0, a.adj_x[src, p], a.adj_v[src, p], a.adj_C[src, p],
+                                            a.adj_F[src, p])
+        add_own(a.adj_x, dst, p, adj_x)  # particle p's own entries: state.add_own, not atomic adds
+        add_own(a.adj_F, dst, p, adj_F)
 
 
 @ti.kernel
 def p2g_reverse(s: ti.template(), a: ti.template(), f: ti.i32):
-    """Reverse P2G of step f (twin of mls_mpm.transfer.p2g)."""
+    """Reverse P2G of step f (twin of mls_mpm.transfer.p2g): its parts added to slot f % 2, then, at a control
+    step, dL/dF_pc^k += dL/dF_p^f (eq 55) for a particle on the grid (slot f % 2 standing for the whole adjoint)."""
     for p in range(s.n_particles):
-        p2g_particle_reverse(s, a, f, p)
+        dst = f % 2
+        adj_x, adj_v, adj_C, adj_F = p2g_particle_reverse(s, a, f, p)
+        add_own(a.adj_x, dst, p, adj_x)
+        add_own(a.adj_v, dst, p, adj_v)
+        add_own(a.adj_C, dst, p, adj_C)
+        add_own(a.adj_F, dst, p, adj_F)
+        if f % s.stride == 0 and inside(stencil(s.x[f, p], s.inv_dx)[0], s.n_grid):
+            add_own(a.adj_F_pc, f // s.stride, p, a.adj_F[dst, p])

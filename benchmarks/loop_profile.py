@@ -21,9 +21,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import taichi as ti  # noqa: E402
 
-from adjoint.state import zero_particle  # noqa: E402
-from adjoint.step import grid_node_reverse  # noqa: E402
-from adjoint.transfer import check_particle_reverse, g2p_particle_reverse, p2g_particle_reverse  # noqa: E402
+from adjoint.step import grid_node_reverse, particle_adjoint  # noqa: E402
 from mls_mpm.bench.child import CASES, cpu_model, scene_of  # noqa: E402
 from mls_mpm.simulator import Simulator  # noqa: E402
 from mls_mpm.step import grid_node  # noqa: E402
@@ -58,38 +56,20 @@ def g2p_loop(s: ti.template(), n: ti.i32):
 
 
 @ti.kernel
-def g2p_reverse_loop(s: ti.template(), a: ti.template(), n: ti.i32):
-    ti.loop_config(serialize=True)
-    for k in range(n):
-        for p in range(s.n_particles):
-            g2p_particle_reverse(s, a, n - 1 - k, p, 0)
-
-
-@ti.kernel
 def grid_reverse_loop(s: ti.template(), a: ti.template(), n: ti.i32):
     ti.loop_config(serialize=True)
     for k in range(n):
         for I in ti.grouped(ti.ndrange(*s.grid_shape)):
-            grid_node_reverse(s, a, n - 1 - k, I, 0)
+            grid_node_reverse(s, a, n - 1 - k, I, 0, n)
 
 
 @ti.kernel
-def p2g_reverse_loop(s: ti.template(), a: ti.template(), n: ti.i32):
-    """Reverse P2G alone (step_loops_reverse's last loop without its zeroing and check)."""
+def particle_reverse_loop(s: ti.template(), a: ti.template(), n: ti.i32):
+    """The reverse pass's particle loop: reverse P2G of step f and reverse G2P of step f - 1 (particle_adjoint)."""
     ti.loop_config(serialize=True)
     for k in range(n):
         for p in range(s.n_particles):
-            p2g_particle_reverse(s, a, n - 1 - k, p)
-
-
-@ti.kernel
-def zero_check_loop(s: ti.template(), a: ti.template(), n: ti.i32):
-    ti.loop_config(serialize=True)
-    for k in range(n):
-        f = n - 1 - k
-        for p in range(s.n_particles):
-            zero_particle(a, (f + 1) % 2, p)
-            check_particle_reverse(s, a, f, p)
+            particle_adjoint(s, a, n - 1 - k, p, 0, 0, n)
 
 
 def best_ms(run, steps, repeats):
@@ -122,8 +102,8 @@ def profile(name, repeats, steps=None):
                           ("forward: G2P", g2p_loop)]:
         rows.append((label, best_ms(lambda k=kernel: k(s, steps), steps, repeats)))
     sim.forward(controls)  # the stored steps again, for the reverse loops
-    for label, kernel in [("reverse: G2P", g2p_reverse_loop), ("reverse: grid", grid_reverse_loop),
-                          ("reverse: stress + P2G", p2g_reverse_loop), ("reverse: zero + check", zero_check_loop)]:
+    for label, kernel in [("reverse: grid", grid_reverse_loop),
+                          ("reverse: stress + P2G + check, G2P of the step before", particle_reverse_loop)]:
         rows.append((label, best_ms(lambda k=kernel: k(s, a, steps), steps, repeats)))
     return case, steps, rows
 
