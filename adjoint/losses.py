@@ -2,7 +2,7 @@
 import taichi as ti
 
 from mls_mpm.config import STENCIL
-from mls_mpm.kernels import join, on_grid, slab_dN, slab_dN_add, slab_offsets, stencil, weights
+from mls_mpm.kernels import axis0_column, join, on_grid, roll, slab_dN, slab_dN_add, slab_offsets, stencil, weights
 from mls_mpm.losses import OT_KINDS, node_penalty, node_residual, splat_value
 
 from .state import add_own, zero_step
@@ -33,15 +33,18 @@ def splat_reverse(s: ti.template(), g: ti.template(), a: ti.template(), f: ti.i3
         w, dw = weights(fx)
         value = splat_value(s, g, p)
         adj_x = ti.Vector.zero(float, s.dim)
+        w0, dw0 = axis0_column(w), axis0_column(dw)
         for i0 in range(STENCIL):  # the stencil's outer loop, a runtime loop: see mls_mpm.kernels
-            adj_x = splat_slab_gather(g, base, w, dw, value, i0, adj_x)
+            adj_x = splat_slab_gather(g, base, w0[0], dw0[0], w, dw, value, i0, adj_x)
+            w0, dw0 = roll(w0), roll(dw0)
         add_own(a.adj_x, f % 2, p, adj_x)  # particle p's own entry: state.add_own, not an atomic add
 
 
 @ti.func
-def splat_slab_gather(g: ti.template(), base, w, dw, value, i0, adj_x):
-    """Slab i0 of splat_reverse: sum over its nodes on the loss grid of dN/dx_p (value_p . dL/dm_i), added to adj_x
-    (kernels.slab_dN_add: the slab's axis-0 factor taken out; a node off the grid adds nothing)."""
+def splat_slab_gather(g: ti.template(), base, w0, dw0, w, dw, value, i0, adj_x):
+    """Slab i0 of splat_reverse (w0, dw0: its axis-0 weights w[i0, 0], dw[i0, 0]): sum over its nodes on the loss
+    grid of dN/dx_p (value_p . dL/dm_i), added to adj_x (kernels.slab_dN_add: the slab's axis-0 factor taken out; a
+    node off the grid adds nothing)."""
     acc = ti.Vector.zero(float, base.n)
     for o2 in ti.static(slab_offsets(base.n)):
         I = base + join(i0, o2)
@@ -49,7 +52,7 @@ def splat_slab_gather(g: ti.template(), base, w, dw, value, i0, adj_x):
         if on_grid(I, g.m):
             c = value.dot(g.adj_m[I])
         acc = slab_dN_add(acc, w, dw, o2, c)
-    return adj_x + slab_dN(acc, w, dw, i0, g.inv_dx)
+    return adj_x + slab_dN(acc, w0, dw0, g.inv_dx)
 
 
 @ti.kernel

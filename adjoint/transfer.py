@@ -3,8 +3,8 @@ import taichi as ti
 
 from mls_mpm.config import STENCIL
 from mls_mpm.grid import velocity_slot
-from mls_mpm.kernels import (along_slab, inside, join, node_N, outer_row, outer_slab, row_offsets, slab_dN, slab_dN_add,
-                             slab_offsets, stencil, weights)
+from mls_mpm.kernels import (along_slab, axis0_column, inside, join, node_N, outer_row, outer_slab, roll, row_offsets,
+                             slab_dN, slab_dN_add, slab_offsets, stencil, weights)
 from mls_mpm.material import polar_rotation, rotated_stress
 from mls_mpm.transfer import affine_momentum, control_sum
 
@@ -47,28 +47,31 @@ def g2p_particle_reverse(s: ti.template(), a: ti.template(), f, p, lane, adj_x_n
         adj_C_new = adj_C_next + s.dt * adj_F_next @ Fs.transpose()
         k = 3.0 * s.inv_dx * s.inv_dx
         adj_x = adj_x_next
+        w0, dw0 = axis0_column(w), axis0_column(dw)
         for i0 in range(STENCIL):  # the stencil's outer loop, a runtime loop: see mls_mpm.kernels
-            adj_x = g2p_slab_reverse(s, a, f, lane, base, fx, w, dw, adj_v_new, adj_C_new, i0, adj_x)
+            adj_x = g2p_slab_reverse(s, a, f, lane, base, fx, w0[0], dw0[0], w, dw, adj_v_new, adj_C_new, i0, adj_x)
+            w0, dw0 = roll(w0), roll(dw0)
         adj_x -= k * adj_C_new.transpose() @ s.v[f + 1, p]  # v^{n+1} = sum_i N v_i (eq 18), stored by the forward
         adj_F = (ti.Matrix.identity(float, s.dim) + s.dt * s.C[f + 1, p]).transpose() @ adj_F_next
     return adj_x, adj_F
 
 
 @ti.func
-def g2p_slab_reverse(s: ti.template(), a: ti.template(), f, lane, base, fx, w, dw, adj_v_new, adj_C_new, i0, adj_x):
-    """Slab i0 of g2p_particle_reverse: dL/dv_i of its nodes (eq 48), and their sum_i dN terms of dL/dx_p
-    (eq 66-69), added to adj_x."""
+def g2p_slab_reverse(s: ti.template(), a: ti.template(), f, lane, base, fx, w0, dw0, w, dw, adj_v_new, adj_C_new, i0,
+                     adj_x):
+    """Slab i0 of g2p_particle_reverse (w0, dw0: its axis-0 weights w[i0, 0], dw[i0, 0]): dL/dv_i of its nodes
+    (eq 48), and their sum_i dN terms of dL/dx_p (eq 66-69), added to adj_x."""
     M = 3.0 * s.inv_dx * adj_C_new  # 3/dx^2 adj_C_new (x_i - x_p) = M (o - fx): kernels.along_slab
     a0 = adj_v_new - M @ (fx - 1.0) + (i0 - 1) * M[:, 0]  # at node (i0, 1, ..)
     acc = ti.Vector.zero(float, s.dim)  # slab_dN_add's sums
     for o2 in ti.static(slab_offsets(s.dim)):
         o = join(i0, o2)
-        N = node_N(w, i0, o2)
+        N = node_N(w0, w, o2)
         v_i = s.grid_v[velocity_slot(s, f), base + o]
         adj_v_i = along_slab(a0, M, o2)  # adj_v_new + 3/dx^2 adj_C_new (x_i - x_p)
         scatter_adj_node(s, a, lane, base + o, N * adj_v_i)
         acc = slab_dN_add(acc, w, dw, o2, v_i.dot(adj_v_i))  # adj_C_new : v_i dpos^T = v_i . adj_C_new dpos
-    return adj_x + slab_dN(acc, w, dw, i0, s.inv_dx)
+    return adj_x + slab_dN(acc, w0, dw0, s.inv_dx)
 
 
 @ti.func
@@ -99,8 +102,10 @@ def p2g_particle_reverse(s: ti.template(), a: ti.template(), f, p):
         mv = drag * s.v[f, p]
         sum_adj_p = ti.Vector.zero(float, s.dim)  # sum_i N dL/dp_i
         Q = ti.Matrix.zero(float, s.dim, s.dim)  # sum_i N dL/dp_i (o - 1)^T
+        w0, dw0 = axis0_column(w), axis0_column(dw)
         for i0 in range(STENCIL):  # the stencil's outer loop, a runtime loop: see mls_mpm.kernels
-            adj_x, sum_adj_p, Q = p2g_slab_reverse(s, a, base, fx, w, dw, G, mv, i0, adj_x, sum_adj_p, Q)
+            adj_x, sum_adj_p, Q = p2g_slab_reverse(s, a, base, fx, w0[0], dw0[0], w, dw, G, mv, i0, adj_x, sum_adj_p, Q)
+            w0, dw0 = roll(w0), roll(dw0)
         adj_G = s.dx * (Q - sum_adj_p.outer_product(fx - 1.0))  # sum_i N dL/dp_i (x_i - x_p)^T (eq 60)
         adj_x -= G.transpose() @ sum_adj_p
         adj_v = drag * sum_adj_p
@@ -111,10 +116,10 @@ def p2g_particle_reverse(s: ti.template(), a: ti.template(), f, p):
 
 
 @ti.func
-def p2g_slab_reverse(s: ti.template(), a: ti.template(), base, fx, w, dw, G, mv, i0, adj_x, sum_adj_p, Q):
-    """Slab i0 of p2g_particle_reverse: its nodes' terms of dL/dx_p (eq 64-65), of sum_i N dL/dp_i and of
-    sum_i N dL/dp_i (o - 1)^T (Q: dL/dG's sum, see mls_mpm.kernels.outer_slab). mv + G (x_i - x_p) as in
-    mls_mpm.transfer.p2g_slab."""
+def p2g_slab_reverse(s: ti.template(), a: ti.template(), base, fx, w0, dw0, w, dw, G, mv, i0, adj_x, sum_adj_p, Q):
+    """Slab i0 of p2g_particle_reverse (w0, dw0: its axis-0 weights w[i0, 0], dw[i0, 0]): its nodes' terms of dL/dx_p
+    (eq 64-65), of sum_i N dL/dp_i and of sum_i N dL/dp_i (o - 1)^T (Q: dL/dG's sum, see mls_mpm.kernels.outer_slab).
+    mv + G (x_i - x_p) as in mls_mpm.transfer.p2g_slab."""
     Gdx = G * s.dx
     a0 = mv - Gdx @ (fx - 1.0) + (i0 - 1) * Gdx[:, 0]
     slab = ti.Vector.zero(float, s.dim)
@@ -124,7 +129,7 @@ def p2g_slab_reverse(s: ti.template(), a: ti.template(), base, fx, w, dw, G, mv,
         for k in ti.static(range(STENCIL)):
             o2 = ti.static(o1 + (k,))
             o = join(i0, o2)
-            N = node_N(w, i0, o2)
+            N = node_N(w0, w, o2)
             adj_m_i = a.adj_grid_m[base + o]
             adj_p_i = a.adj_grid_p[base + o]
             acc = slab_dN_add(acc, w, dw, o2, s.m_p * adj_m_i + adj_p_i.dot(along_slab(a0, Gdx, o2)))
@@ -135,7 +140,7 @@ def p2g_slab_reverse(s: ti.template(), a: ti.template(), base, fx, w, dw, G, mv,
         Q = outer_slab(Q, row, o1)
     for r in ti.static(range(s.dim)):
         Q[r, 0] += (i0 - 1) * slab[r]
-    return adj_x + slab_dN(acc, w, dw, i0, s.inv_dx), sum_adj_p + slab, Q
+    return adj_x + slab_dN(acc, w0, dw0, s.inv_dx), sum_adj_p + slab, Q
 
 
 @ti.func

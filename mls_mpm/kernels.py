@@ -19,7 +19,10 @@ from .config import STENCIL
 #     else:
 #         for i0 in range(STENCIL): acc = slab(..., i0, acc)
 # a reverse kernel as the second branch alone, with the accumulators passed through the slab function, so that
-# every sum adds the nodes in the same order.
+# every sum adds the nodes in the same order. A slab's axis-0 weight w[i0, 0] is read once a slab (node_N): a forward
+# kernel's by axis0, a reverse kernel's from registers, rolled at each step of the loop (axis0_column, roll), since
+# indexing a matrix by the runtime i0 goes through memory (the 2D backward executed 12% fewer instructions so,
+# BENCHMARKS.md).
 # Inside a slab, the sums of u_i (o_i - 1)^T (G2P's eq 19, reverse P2G's eq 60) run row by row, a row being 4 nodes
 # along the last axis (row_offsets; 2D: the slab is one row): a middle axis's offset, shared by a row, multiplies
 # the row's sum once (outer_slab), not each node's (3D G2P 1.1x faster on one thread).
@@ -158,6 +161,20 @@ def axis0(w, i0):
 
 
 @ti.func
+def axis0_column(w):
+    """(w[0, 0], .., w[3, 0]): the axis-0 weights of the stencil's rows, for a loop over i0 that takes them by roll."""
+    return ti.Vector([w[j, 0] for j in ti.static(range(STENCIL))])
+
+
+@ti.func
+def roll(c):
+    """(c[1], .., c[n - 1], c[0]): after `c = roll(c)` at the end of each step of the stencil's runtime loop over i0,
+    c[0] is axis0_column's entry i0 at every step, kept in registers (no runtime index: see axis0). The reverse
+    kernels, which no Tape differentiates, take their axis-0 weights so."""
+    return ti.Vector([c[(j + 1) % c.n] for j in ti.static(range(c.n))])
+
+
+@ti.func
 def carry(v):
     """v itself, for a value computed before the stencil's runtime loop (3D) and read inside it: reassign it at the
     top of each iteration, `w = carry(w)`. Taichi 1.7.4's autodiff keeps the adjoint of such a value for one
@@ -167,9 +184,12 @@ def carry(v):
 
 
 @ti.func
-def node_N(w, i0, o2: ti.template()):
-    """N(x_i - x_p) = prod_d N1 for node base + (i0, o2) (eq 1)."""
-    N = axis0(w, i0)
+def node_N(w0, w, o2: ti.template()):
+    """N(x_i - x_p) = prod_d N1 for node base + (i0, o2) (eq 1), given the slab's axis-0 weight w0 = axis0(w, i0).
+
+    A slab function reads w0 (and dw0) once, not once a node: indexing a matrix by the runtime i0 stores the matrix
+    to memory and loads the entry back at each use, which LLVM does not hoist out of the stencil loop."""
+    N = w0
     for d in ti.static(range(len(o2))):
         N *= w[o2[d], d + 1]
     return N
@@ -193,10 +213,11 @@ def slab_dN_add(acc, w, dw, o2: ti.template(), c):
 
 
 @ti.func
-def slab_dN(acc, w, dw, i0, inv_dx):
-    """sum_i dN_i c_i over slab i0 from slab_dN_add's sums acc: axis 0 times dw[i0, 0], the others times w[i0, 0]."""
-    r = acc * axis0(w, i0)
-    r[0] = acc[0] * axis0(dw, i0)
+def slab_dN(acc, w0, dw0, inv_dx):
+    """sum_i dN_i c_i over slab i0 from slab_dN_add's sums acc: axis 0 times dw0 = dw[i0, 0], the others times
+    w0 = w[i0, 0]."""
+    r = acc * w0
+    r[0] = acc[0] * dw0
     return r * inv_dx
 
 
@@ -220,10 +241,11 @@ def on_grid(I, grid: ti.template()) -> ti.i32:
 
 @ti.func
 def splat_slab(grid: ti.template(), base, w, value, i0):
+    w0 = axis0(w, i0)
     for o2 in ti.static(slab_offsets(base.n)):
         I = base + join(i0, o2)
         if on_grid(I, grid):
-            grid[I] += node_N(w, i0, o2) * value
+            grid[I] += node_N(w0, w, o2) * value
 
 
 @ti.func

@@ -6,7 +6,7 @@ import taichi as ti
 
 from .config import STENCIL
 from .grid import velocity_slot
-from .kernels import (along_slab, carry, inside, join, node_N, outer_row, outer_slab, row_offsets, slab_offsets,
+from .kernels import (along_slab, axis0, carry, inside, join, node_N, outer_row, outer_slab, row_offsets, slab_offsets,
                       stencil, weights)
 from .material import stress
 from .state import FAULT_LEFT_GRID, FAULT_NON_FINITE
@@ -92,9 +92,10 @@ def p2g_slab(s: ti.template(), f, lane, base, fx, w, G, mv, i0):
     kernels.along_slab from its value at (i0, 0, ..)."""
     Gdx = G * s.dx
     a = mv - Gdx @ (fx - 1.0) + (i0 - 1) * Gdx[:, 0]  # at node (i0, 1, ..)
+    w0 = axis0(w, i0)
     for o2 in ti.static(slab_offsets(s.dim)):
         o = join(i0, o2)
-        N = node_N(w, i0, o2)
+        N = node_N(w0, w, o2)
         scatter_node(s, f, lane, base + o, N * s.m_p, N * along_slab(a, Gdx, o2))
 
 
@@ -131,11 +132,12 @@ def g2p_slab(s: ti.template(), f, base, w, i0, v_new, Q):
     """The gather of g2p_particle from slab i0 of the stencil: sum_i N v_i added to v_new (eq 18), and
     sum_i N v_i (o - 1)^T (o the node's offset in the stencil) to Q (eq 19's sum, see kernels.outer_slab)."""
     slab = ti.Vector.zero(float, s.dim)
+    w0 = axis0(w, i0)
     for o1 in ti.static(row_offsets(s.dim)):  # rows along the last axis: kernels.row_offsets
         row = ti.Vector.zero(float, s.dim)
         for k in ti.static(range(STENCIL)):
             o2 = ti.static(o1 + (k,))
-            Nv = node_N(w, i0, o2) * s.grid_v[velocity_slot(s, f), base + join(i0, o2)]
+            Nv = node_N(w0, w, o2) * s.grid_v[velocity_slot(s, f), base + join(i0, o2)]
             row += Nv
             Q = outer_row(Q, Nv, k)
         slab += row
