@@ -6,15 +6,16 @@ from mls_mpm.grid import free_velocity, wall_mask
 
 @ti.func
 def grid_op_node_reverse(s: ti.template(), a: ti.template(), f, I):
-    """dL/dp_i = M dL/dv_i / m_i (eq 50), dL/dm_i = -(p_i / m_i) . M dL/dv_i / m_i (eq 52-53), M the wall mask.
+    """dL/dp_i = M dL/dv_i / m_i (eq 50), dL/dm_i = -(p_i / m_i) . M dL/dv_i / m_i (eq 52-53), M the wall mask,
+    stored together as (dL/dp_i, dL/dm_i) in a.adj_grid_mp.
 
     With gravity's impulse and the guard, v = (p + m dt g) / (m + m_eps): dL/dp_i = M dL/dv_i / (m_i + m_eps)
     and dL/dm_i = (dt g - v_free) . dL/dp_i, which is eq 52-53 up to m_eps (v_free - dt g = p_i / m_i).
     """
     v_free = free_velocity(s, f, I)
     adj_p = a.adj_grid_v[I] * wall_mask(s, I, v_free) / (s.grid_m[f, I] + s.m_eps)
-    a.adj_grid_p[I] = adj_p
-    a.adj_grid_m[I] = (s.dt * ti.Vector(s.gravity) - v_free).dot(adj_p)
+    adj_m = (s.dt * ti.Vector(s.gravity) - v_free).dot(adj_p)
+    a.adj_grid_mp[I] = ti.Vector([adj_p[d] for d in ti.static(range(s.dim))] + [adj_m])
 
 
 @ti.kernel

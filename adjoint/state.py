@@ -12,8 +12,9 @@ class AdjointState:
         self.adj_v = ti.Vector.field(d, dtype, shape=(2, N))  # dL/dv_p
         self.adj_C = ti.Matrix.field(d, d, dtype, shape=(2, N))  # dL/dC_p
         self.adj_F = ti.Matrix.field(d, d, dtype, shape=(2, N))  # dL/dF_p (= dL/dF_pc, eq 55)
-        self.adj_grid_m = ti.field(dtype, shape=grid)  # dL/dm_i
-        self.adj_grid_p = ti.Vector.field(d, dtype, shape=grid)  # dL/dp_i
+        # (dL/dp_i, dL/dm_i) in one vector per node, as State.lane_mp holds (p_i, m_i): reverse P2G gathers dim + 1
+        # adjacent values a node
+        self.adj_grid_mp = ti.Vector.field(d + 1, dtype, shape=grid)
         self.adj_grid_v = ti.Vector.field(d, dtype, shape=grid)  # dL/dv_i
         self.adj_F_pc = ti.Matrix.field(d, d, dtype, shape=(s.n_controls, N))  # dL/dF_pc^k, the result
         # the latest step f whose adjoint went non-finite, and its lowest particle p, as f * N + (N - 1 - p); -1: none

@@ -130,8 +130,9 @@ def p2g_slab_reverse(s: ti.template(), a: ti.template(), base, fx, w0, dw0, w, d
             o2 = ti.static(o1 + (k,))
             o = join(i0, o2)
             N = node_N(w0, w, o2)
-            adj_m_i = a.adj_grid_m[base + o]
-            adj_p_i = a.adj_grid_p[base + o]
+            mp = a.adj_grid_mp[base + o]  # (dL/dp_i, dL/dm_i)
+            adj_m_i = mp[s.dim]
+            adj_p_i = ti.Vector([mp[d] for d in ti.static(range(s.dim))])
             acc = slab_dN_add(acc, w, dw, o2, s.m_p * adj_m_i + adj_p_i.dot(along_slab(a0, Gdx, o2)))
             Np = N * adj_p_i
             row += Np

@@ -153,6 +153,17 @@ def field_tail(field):
     return ()
 
 
+def put_grid_adjoint(a, adj_m, adj_p):
+    """dL/dm_i, dL/dp_i into AdjointState.adj_grid_mp, which holds (dL/dp_i, dL/dm_i) per node."""
+    a.adj_grid_mp.from_numpy(np.concatenate([adj_p, adj_m[..., None]], axis=-1))
+
+
+def grid_adjoint(a):
+    """(dL/dm_i, dL/dp_i) from AdjointState.adj_grid_mp."""
+    mp = a.adj_grid_mp.to_numpy()
+    return mp[..., -1], mp[..., :-1]
+
+
 def tape_grads(t, names, index):
     return {name: getattr(t, name).grad.to_numpy()[index] for name in names}
 
@@ -265,10 +276,10 @@ def test_grid_op_reverse_matches_tape(grid_pair, f):
     tape = tape_grads(t, ("grid_m", "grid_p"), f)
 
     a.adj_grid_v.from_numpy(w.np["gv"])
-    a.adj_grid_m.from_numpy(rng.standard_normal(m.shape))  # grid_op_reverse owns these: it overwrites them
-    a.adj_grid_p.from_numpy(rng.standard_normal(p.shape))
+    # grid_op_reverse owns dL/dm_i, dL/dp_i: it overwrites them
+    put_grid_adjoint(a, rng.standard_normal(m.shape), rng.standard_normal(p.shape))
     grid_op_reverse(s, a, f)
-    adj_m, adj_p = a.adj_grid_m.to_numpy(), a.adj_grid_p.to_numpy()
+    adj_m, adj_p = grid_adjoint(a)
 
     assert max_rel_err(adj_p, tape["grid_p"]) <= TOL
     assert max_rel_err(adj_m, tape["grid_m"], axis=None) <= TOL
@@ -318,8 +329,7 @@ def test_p2g_reverse_matches_tape(pair, f, which):
     tape = tape_grads(t, PARTICLE_FIELDS, f)
     tape_F_pc = t.F_pc.grad.to_numpy()
 
-    a.adj_grid_m.from_numpy(w.np["m"])
-    a.adj_grid_p.from_numpy(w.np["p"])
+    put_grid_adjoint(a, w.np["m"], w.np["p"])
     like = {"adj_" + k: np.stack([tape[k]] * 2) for k in PARTICLE_FIELDS}
     like["adj_F_pc"] = tape_F_pc + tape["F"]
     b = pair.prefill(rng, list(like), like)

@@ -18,7 +18,7 @@ from adjoint.transfer import g2p_reverse, p2g_reverse
 from conftest import rel_err
 from mls_mpm import losses
 from mls_mpm.transfer import g2p, p2g
-from test_adjoint_kernels import CONTROL_STEP, PLAIN_STEP, Pair, kernel_config, loss_specs
+from test_adjoint_kernels import CONTROL_STEP, PLAIN_STEP, Pair, kernel_config, loss_specs, put_grid_adjoint
 
 pytestmark = pytest.mark.usefixtures("taichi_f64_module")
 
@@ -130,8 +130,7 @@ def test_p2g_reverse_matches_central_differences(pair3, f, inputs):
         p2g(s, f)
         return float(np.sum(w.np["m"] * s.grid_m.to_numpy()[f]) + np.sum(w.np["p"] * s.grid_p.to_numpy()[f]))
 
-    a.adj_grid_m.from_numpy(w.np["m"])
-    a.adj_grid_p.from_numpy(w.np["p"])
+    put_grid_adjoint(a, w.np["m"], w.np["p"])
     for k in ("x", "v", "C", "F"):
         getattr(a, "adj_" + k).fill(0.0)
     a.adj_F_pc.fill(0.0)
