@@ -2,6 +2,7 @@
 import taichi as ti
 
 from mls_mpm.grid import free_velocity, wall_mask
+from mls_mpm.state import pack_mp
 
 
 @ti.func
@@ -15,7 +16,7 @@ def grid_op_node_reverse(s: ti.template(), a: ti.template(), f, I):
     v_free = free_velocity(s, f, I)
     adj_p = a.adj_grid_v[I] * wall_mask(s, I, v_free) / (s.grid_m[f, I] + s.m_eps)
     adj_m = (s.dt * ti.Vector(s.gravity) - v_free).dot(adj_p)
-    a.adj_grid_mp[I] = ti.Vector([adj_p[d] for d in ti.static(range(s.dim))] + [adj_m])
+    a.adj_grid_mp[I] = pack_mp(adj_p, adj_m)
 
 
 @ti.kernel

@@ -6,6 +6,7 @@ from mls_mpm.grid import velocity_slot
 from mls_mpm.kernels import (along_slab, axis0_column, inside, join, node_N, outer_row, outer_slab, roll, row_offsets,
                              slab_dN, slab_dN_add, slab_offsets, stencil, weights)
 from mls_mpm.material import polar_rotation, rotated_stress
+from mls_mpm.state import unpack_mp
 from mls_mpm.transfer import affine_momentum, control_sum
 
 from .material import rotated_stress_reverse
@@ -130,9 +131,7 @@ def p2g_slab_reverse(s: ti.template(), a: ti.template(), base, fx, w0, dw0, w, d
             o2 = ti.static(o1 + (k,))
             o = join(i0, o2)
             N = node_N(w0, w, o2)
-            mp = a.adj_grid_mp[base + o]  # (dL/dp_i, dL/dm_i)
-            adj_m_i = mp[s.dim]
-            adj_p_i = ti.Vector([mp[d] for d in ti.static(range(s.dim))])
+            adj_p_i, adj_m_i = unpack_mp(a.adj_grid_mp[base + o])
             acc = slab_dN_add(acc, w, dw, o2, s.m_p * adj_m_i + adj_p_i.dot(along_slab(a0, Gdx, o2)))
             Np = N * adj_p_i
             row += Np

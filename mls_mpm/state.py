@@ -73,6 +73,19 @@ def lane_span(s: ti.template(), item):
     return lane, lo, ti.min(lo + s.lane_item, end)
 
 
+@ti.func
+def pack_mp(p, m):
+    """(p, m) as one (dim + 1)-vector, momentum (or its adjoint) first and mass last: a node of State.lane_mp and of
+    AdjointState.adj_grid_mp, its dim + 1 values adjacent in memory."""
+    return ti.Vector([p[d] for d in ti.static(range(p.n))] + [m])
+
+
+@ti.func
+def unpack_mp(q):
+    """(p, m) from a pack_mp vector q."""
+    return ti.Vector([q[d] for d in ti.static(range(q.n - 1))]), q[q.n - 1]
+
+
 @ti.data_oriented
 class State:
     """Fields of one simulation; per-step fields are shaped (steps + 1, ...) or (steps, ...) for the grid.

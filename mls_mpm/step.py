@@ -9,7 +9,7 @@ Grid f + 1 is cleared by step f's grid loop, after nothing reads it, so each ste
 import taichi as ti
 
 from .grid import grid_op_node
-from .state import LANE_TASK, lane_span
+from .state import LANE_TASK, lane_span, unpack_mp
 from .transfer import check_particle, g2p_particle, p2g_particle, particle_G
 
 
@@ -32,10 +32,9 @@ def gather_lanes(s: ti.template(), f, I):
     m = 0.0
     mom = ti.Vector.zero(float, s.dim)
     for lane in ti.static(range(s.lanes)):
-        q = s.lane_mp[lane, I]
-        m += q[s.dim]
-        for d in ti.static(range(s.dim)):
-            mom[d] += q[d]
+        q_p, q_m = unpack_mp(s.lane_mp[lane, I])
+        m += q_m
+        mom += q_p
         s.lane_mp[lane, I] = ti.Vector.zero(float, s.dim + 1)
     s.grid_m[f, I] = m
     s.grid_p[f, I] = mom

@@ -9,7 +9,7 @@ from .grid import velocity_slot
 from .kernels import (along_slab, axis0, carry, inside, join, node_N, outer_row, outer_slab, row_offsets, slab_offsets,
                       stencil, weights)
 from .material import stress
-from .state import FAULT_LEFT_GRID, FAULT_NON_FINITE
+from .state import FAULT_LEFT_GRID, FAULT_NON_FINITE, pack_mp
 
 
 @ti.func
@@ -44,7 +44,7 @@ def scatter_node(s: ti.template(), f, lane, I, dm, dp):
     A private grid holds (p_i, m_i) in one vector per node, adjacent in memory: one read-add-write of dim + 1 values
     a node (the 3D scatter loop measured 1.2x faster than with m_i and p_i in fields of their own)."""
     if ti.static(s.lanes > 0):
-        s.lane_mp[lane, I] = s.lane_mp[lane, I] + ti.Vector([dp[d] for d in ti.static(range(s.dim))] + [dm])
+        s.lane_mp[lane, I] = s.lane_mp[lane, I] + pack_mp(dp, dm)
     else:
         s.grid_m[f, I] += dm
         s.grid_p[f, I] += dp
