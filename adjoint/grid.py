@@ -2,7 +2,7 @@
 import taichi as ti
 
 from mls_mpm.grid import free_velocity, wall_mask
-from mls_mpm.state import pack_mp
+from mls_mpm.state import pack_mp, unpack_mp
 
 
 @ti.func
@@ -14,7 +14,8 @@ def grid_op_node_reverse(s: ti.template(), a: ti.template(), f, I):
     and dL/dm_i = (dt g - v_free) . dL/dp_i, which is eq 52-53 up to m_eps (v_free - dt g = p_i / m_i).
     """
     v_free = free_velocity(s, f, I)
-    adj_p = a.adj_grid_v[I] * wall_mask(s, I, v_free) / (s.grid_m[f, I] + s.m_eps)
+    _, m = unpack_mp(s.grid_mp[f, I])
+    adj_p = a.adj_grid_v[I] * wall_mask(s, I, v_free) / (m + s.m_eps)
     adj_m = (s.dt * ti.Vector(s.gravity) - v_free).dot(adj_p)
     a.adj_grid_mp[I] = pack_mp(adj_p, adj_m)
 

@@ -1,6 +1,8 @@
 """Grid operations of one step: eq 17, gravity, walls and the guarded division at empty nodes (any dim)."""
 import taichi as ti
 
+from .state import unpack_mp
+
 
 @ti.func
 def wall_mask(s: ti.template(), I, v):
@@ -30,8 +32,8 @@ def free_velocity(s: ti.template(), f, I):
     p_i and m_i both carry the weights N_ip, so the quotient stays bounded and smooth as m_i -> 0, and at any
     node mass that matters (m_i >= 1e-4 m_p) m_eps changes it by less than round-off.
     """
-    m = s.grid_m[f, I]
-    return (s.grid_p[f, I] + m * s.dt * ti.Vector(s.gravity)) / (m + s.m_eps)
+    p, m = unpack_mp(s.grid_mp[f, I])
+    return (p + m * s.dt * ti.Vector(s.gravity)) / (m + s.m_eps)
 
 
 @ti.func

@@ -75,8 +75,8 @@ def lane_span(s: ti.template(), item):
 
 @ti.func
 def pack_mp(p, m):
-    """(p, m) as one (dim + 1)-vector, momentum (or its adjoint) first and mass last: a node of State.lane_mp and of
-    AdjointState.adj_grid_mp, its dim + 1 values adjacent in memory."""
+    """(p, m) as one (dim + 1)-vector, momentum (or its adjoint) first and mass last: a node of State.grid_mp,
+    State.lane_mp and AdjointState.adj_grid_mp, its dim + 1 values adjacent in memory."""
     return ti.Vector([p[d] for d in ti.static(range(p.n))] + [m])
 
 
@@ -134,8 +134,9 @@ class State:
         self.F = ti.Matrix.field(d, d, dt_, shape=(T + 1, N), needs_grad=g)  # deformation gradient F_p^n
         self.F_pc = ti.Matrix.field(d, d, dt_, shape=(self.n_controls, N), needs_grad=g)  # control F_pc (eq 8)
         # grid state of steps 0..T-1 (step T has no grid update)
-        self.grid_m = ti.field(dt_, shape=(T,) + grid, needs_grad=g)  # node mass m_i^n (eq 15)
-        self.grid_p = ti.Vector.field(d, dt_, shape=(T,) + grid, needs_grad=g)  # node momentum p_i^n (eq 16)
+        # node (p_i^n, m_i^n) (eq 16, 15) in one (dim + 1)-vector, pack_mp's layout: one address a node for the
+        # scatter, the grid loop and the reverse pass (grid_mass / grid_momentum split it in numpy)
+        self.grid_mp = ti.Vector.field(d + 1, dt_, shape=(T,) + grid, needs_grad=g)
         # node velocity v_i^n (eq 17): every step under the Tape (needs_grad) or where asked (every_velocity, the
         # kernel tests), else one slot that the grid loop of each step overwrites and the reverse pass recomputes
         # from m_i, p_i (adjoint.step): (1 + 2 dim) / (1 + dim) the grid memory of a step otherwise
@@ -160,6 +161,14 @@ class State:
             for lg in loss_grids
         ]
         self.active_grids = list(self.loss_grids)  # the loss grids whose terms the loss sums (schedule stages)
+
+    def grid_mass(self):
+        """m_i^n of steps 0..T-1 in numpy, shaped (T,) + grid_shape."""
+        return self.grid_mp.to_numpy()[..., self.dim]
+
+    def grid_momentum(self):
+        """p_i^n of steps 0..T-1 in numpy, shaped (T,) + grid_shape + (dim,)."""
+        return self.grid_mp.to_numpy()[..., :self.dim]
 
     def clear_faults(self):
         self.fault.from_numpy(np.full(2, FAULT_NONE, dtype=np.int64))

@@ -9,14 +9,13 @@ Grid f + 1 is cleared by step f's grid loop, after nothing reads it, so each ste
 import taichi as ti
 
 from .grid import grid_op_node
-from .state import LANE_TASK, lane_span, unpack_mp
+from .state import LANE_TASK, lane_span
 from .transfer import check_particle, g2p_particle, p2g_particle, particle_G
 
 
 @ti.func
 def clear_node(s: ti.template(), f, I):
-    s.grid_m[f, I] = 0.0
-    s.grid_p[f, I] = ti.Vector.zero(float, s.dim)
+    s.grid_mp[f, I] = ti.Vector.zero(float, s.dim + 1)
 
 
 @ti.kernel
@@ -29,15 +28,11 @@ def clear_grid(s: ti.template(), f: ti.i32):
 @ti.func
 def gather_lanes(s: ti.template(), f, I):
     """grid f = the sum of the threads' private grids, which are zeroed for the next step."""
-    m = 0.0
-    mom = ti.Vector.zero(float, s.dim)
+    mp = ti.Vector.zero(float, s.dim + 1)
     for lane in ti.static(range(s.lanes)):
-        q_p, q_m = unpack_mp(s.lane_mp[lane, I])
-        m += q_m
-        mom += q_p
+        mp += s.lane_mp[lane, I]
         s.lane_mp[lane, I] = ti.Vector.zero(float, s.dim + 1)
-    s.grid_m[f, I] = m
-    s.grid_p[f, I] = mom
+    s.grid_mp[f, I] = mp
 
 
 @ti.func

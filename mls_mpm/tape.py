@@ -63,7 +63,7 @@ def tape_gradient(cfg, init, loss, controls, validation=False, state=None):
     upload_loss(t, loss, grids)
     write_step(t, 0, *(np.asarray(init[k]).astype(np_dtype) for k in ("x", "v", "C", "F")))
     t.F_pc.from_numpy(np.asarray(controls).astype(np_dtype))
-    for field in (t.grid_m, t.grid_p, t.grid_v, t.loss, *(g.m for g in grids)):
+    for field in (t.grid_mp, t.grid_v, t.loss, *(g.m for g in grids)):
         field.fill(0.0)
     T = cfg.steps
     ot_grids = [g for g in grids if g.kind in OT_KINDS]
@@ -80,7 +80,7 @@ def tape_gradient(cfg, init, loss, controls, validation=False, state=None):
             g.m.fill(0.0)
             losses.splat(t, g, T)
             ot_value += losses.ot_loss(t, g)
-        for field in (t.grid_m, t.grid_p, t.grid_v, t.loss, *(g.m for g in grids)):
+        for field in (t.grid_mp, t.grid_v, t.loss, *(g.m for g in grids)):
             field.fill(0.0)
     with ti.ad.Tape(loss=t.loss, validation=validation):
         for f in range(T):

@@ -46,8 +46,7 @@ def scatter_node(s: ti.template(), f, lane, I, dm, dp):
     if ti.static(s.lanes > 0):
         s.lane_mp[lane, I] = s.lane_mp[lane, I] + pack_mp(dp, dm)
     else:
-        s.grid_m[f, I] += dm
-        s.grid_p[f, I] += dp
+        s.grid_mp[f, I] += pack_mp(dp, dm)
 
 
 @ti.func

@@ -34,7 +34,7 @@ from conftest import max_rel_err, rel_err
 from mls_mpm import ColorLoss, MassLoss, OTLoss, SimConfig, losses, ot
 from mls_mpm.grid import grid_op
 from mls_mpm.material import stress
-from mls_mpm.state import State, upload_loss
+from mls_mpm.state import State, unpack_mp, upload_loss
 from mls_mpm.persistent import run_persistent
 from mls_mpm.step import run_parallel, run_serial
 from mls_mpm.transfer import g2p, p2g
@@ -97,7 +97,8 @@ def particle_functional(s: ti.template(), w: ti.template(), f: ti.i32):
 @ti.kernel
 def grid_functional(s: ti.template(), w: ti.template(), f: ti.i32):
     for I in ti.grouped(ti.ndrange(*s.grid_shape)):
-        s.loss[None] += (w.m[I] * s.grid_m[f, I] + w.p[I].dot(s.grid_p[f, I]) + w.gv[I].dot(s.grid_v[f, I]))
+        p, m = unpack_mp(s.grid_mp[f, I])
+        s.loss[None] += w.m[I] * m + w.p[I].dot(p) + w.gv[I].dot(s.grid_v[f, I])
 
 
 PARTICLE_FIELDS = ("x", "v", "C", "F")
@@ -119,6 +120,11 @@ class Pair:
         if name != "grid_v" or self.s.every_velocity:  # one velocity slot (StepPair): the forward step writes it
             getattr(self.s, name).from_numpy(value)
 
+    def put_grid(self, m, p):
+        """Node masses m (steps,) + grid and momenta p (steps,) + grid + (dim,) into grid_mp (state.pack_mp's
+        layout)."""
+        self.put("grid_mp", np.concatenate([p, m[..., None]], axis=-1))
+
     def randomize(self, rng):
         """Random inputs at every step: x inside the grid (one particle outside), v, C ~ O(1), F near I."""
         T1, N, n, K, d = self.cfg.steps + 1, self.N, self.n, self.cfg.n_controls, self.d
@@ -131,8 +137,8 @@ class Pair:
         self.put("C", 3.0 * rng.standard_normal((T1, N, d, d)))
         self.put("F", np.eye(d) + 0.2 * rng.standard_normal((T1, N, d, d)))
         self.put("F_pc", 0.1 * rng.standard_normal((K, N, d, d)))
-        self.put("grid_m", self.cfg.m_p * rng.uniform(0.1, 3.0, (T1 - 1,) + grid))
-        self.put("grid_p", self.cfg.m_p * rng.standard_normal((T1 - 1,) + grid + (d,)))
+        self.put_grid(self.cfg.m_p * rng.uniform(0.1, 3.0, (T1 - 1,) + grid),
+                      self.cfg.m_p * rng.standard_normal((T1 - 1,) + grid + (d,)))
         self.put("grid_v", rng.standard_normal((T1 - 1,) + grid + (d,)))
         self.put("loss", np.zeros(()))
 
@@ -266,14 +272,14 @@ def test_grid_op_reverse_matches_tape(grid_pair, f):
     pair.randomize(rng)
     m, p, kind = grid_inputs(cfg, rng)
     T = cfg.steps
-    pair.put("grid_m", np.broadcast_to(m, (T,) + m.shape).copy())
-    pair.put("grid_p", np.broadcast_to(p, (T,) + p.shape).copy())
+    pair.put_grid(np.broadcast_to(m, (T,) + m.shape), np.broadcast_to(p, (T,) + p.shape))
     w = pair.upstream.draw(rng, ["gv"])
     t, s, a = pair.t, pair.s, pair.a
     with ti.ad.Tape(loss=t.loss):
         grid_op(t, f)
         grid_functional(t, w, f)
-    tape = tape_grads(t, ("grid_m", "grid_p"), f)
+    tape_mp = tape_grads(t, ("grid_mp",), f)["grid_mp"]
+    tape = {"grid_p": tape_mp[..., :-1], "grid_m": tape_mp[..., -1]}
 
     a.adj_grid_v.from_numpy(w.np["gv"])
     # grid_op_reverse owns dL/dm_i, dL/dp_i: it overwrites them
@@ -321,8 +327,7 @@ def test_p2g_reverse_matches_tape(pair, f, which):
     w = pair.upstream.draw(rng, which.split())
     t, s, a = pair.t, pair.s, pair.a
     for st in (t, s):
-        st.grid_m.fill(0.0)
-        st.grid_p.fill(0.0)
+        st.grid_mp.fill(0.0)
     with ti.ad.Tape(loss=t.loss):
         p2g(t, f)
         grid_functional(t, w, f)
@@ -388,8 +393,7 @@ def run_step_pair(pair, f, w, upstream_nan=(), n=1, persistent=False):
     """
     t, s, a = pair.t, pair.s, pair.a
     for st in (t, s):
-        st.grid_m.fill(0.0)
-        st.grid_p.fill(0.0)
+        st.grid_mp.fill(0.0)
     with ti.ad.Tape(loss=t.loss):
         for g in range(f, f + n):
             p2g(t, g)

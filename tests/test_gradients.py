@@ -410,7 +410,7 @@ write_step(t, 0, x0, 0.1 * rng.standard_normal((N, 2)), np.zeros((N, 2, 2)), np.
 
 def run(c, tape=False):
     t.F_pc.from_numpy(c)
-    for field in (t.grid_m, t.grid_p, t.grid_v, t.loss, *(g.m for g in t.loss_grids)):
+    for field in (t.grid_mp, t.grid_v, t.loss, *(g.m for g in t.loss_grids)):
         field.fill(0.0)
     def body():
         for f in range(cfg.steps):
