@@ -86,12 +86,31 @@ def run_scene(scene, out_dir, resume=False, emit=print, should_stop=None, render
     if resume and not ckpt.is_file():  # before anything is created
         raise CheckpointError(f"{ckpt}: no such file; expected the checkpoint of an interrupted run (drop --resume "
                               "to start over)")
-    sim = Simulator(scene.sim, prob.x0, loss=prob.loss)  # refuses a missing backend or too little memory: nothing written
+    cfg = _resumed_config(ckpt, scene.sim) if resume else scene.sim
+    sim = Simulator(cfg, prob.x0, loss=prob.loss)  # refuses a missing backend or too little memory: nothing written
     out = prepare_out(out_dir)
     with folder_lock(out, "run"):
         for name, text in (files or {}).items():
             atomic_write(out / name, lambda fh, text=text: fh.write(text.encode()))
         return _run(scene, prob, sim, out, resume, emit, should_stop, render, t0)
+
+
+def _resumed_config(path, cfg):
+    """The simulation settings to resume the checkpoint at path with: under `sim.schedule = "auto"`, the schedule
+    the checkpoint was made in. `auto` can resolve otherwise in the resumed process (for a 2D scene on 2 CPUs it
+    follows whether mls_mpm/affinity.py's probe pinned the workers, which can fail on a loaded machine), and the two
+    schedules differ in round-off, which a bit-for-bit resume must repeat. A checkpoint that names none (written
+    before checkpoints did) resumes under `auto`."""
+    if cfg.schedule != "auto":
+        return cfg  # the scene's own schedule, which the checkpoint's fingerprint holds
+    meta, _ = load_npz(path, "checkpoint")
+    schedule = meta.get("schedule")
+    if schedule is None:
+        return cfg
+    if schedule not in ("serial", "parallel"):
+        raise CheckpointError(f"{path}: schedule is {json.dumps(schedule)[:40]}: expected \"serial\" or \"parallel\"; "
+                              "not a checkpoint of this program; delete it or re-run")
+    return cfg.replace(schedule=schedule)
 
 
 def stages(scene, round_index=0):
@@ -116,7 +135,7 @@ def _run(scene, prob, sim, out, resume, emit, should_stop, render, t0):
         emit(note)
     emit(f"{scene.name}: {len(prob.x0)} particles, {cfg.n_grid}^{cfg.dim} grid, {cfg.steps} steps, "
          f"{cfg.n_controls} control steps, loss {scene.loss.kind} on grids {list(scene.loss.grids)}, "
-         f"optimizer {opt.method}, {opt.rounds} round(s), on {runtime.running_arch()}")
+         f"optimizer {opt.method}, {opt.rounds} round(s), on {runtime.running_arch()} ({sim.schedule} schedule)")
     _remove_temp_files(out, emit)
     ckpt = out / "checkpoint.npz"
     done, starts, opt_state, elapsed = [], [_initial_state(prob)], None, 0.0
@@ -135,7 +154,8 @@ def _run(scene, prob, sim, out, resume, emit, should_stop, render, t0):
         method = staged(METHODS[opt.method], stages(scene, r), seconds, now)
         sim.set_initial(**starts[r])
 
-        saver = _Throttled(lambda state, at: _save_checkpoint(ckpt, scene, done, starts, state, elapsed + at - t0))
+        saver = _Throttled(lambda state, at: _save_checkpoint(ckpt, scene, sim.schedule, done, starts, state,
+                                                                elapsed + at - t0))
         if opt.rounds > 1:
             emit(f"round {r + 1}/{opt.rounds}")
         res = method(sim, sim.zero_controls(), opt, on_checkpoint=saver, should_stop=should_stop,
@@ -151,7 +171,7 @@ def _run(scene, prob, sim, out, resume, emit, should_stop, render, t0):
             break
         if len(done) < opt.rounds:
             starts.append(_next_start(scene, prob, sim, starts[r], res))
-        _save_checkpoint(ckpt, scene, done, starts, None, elapsed + time.perf_counter() - t0)
+        _save_checkpoint(ckpt, scene, sim.schedule, done, starts, None, elapsed + time.perf_counter() - t0)
     wall = elapsed + time.perf_counter() - t0
     summary = _finish(scene, prob, sim, done, starts, out, wall, emit)
     ckpt.unlink(missing_ok=True)
@@ -208,6 +228,7 @@ def _finish(scene, prob, sim, done, starts, out, wall, emit):
         "particles": len(prob.x0),
         "dim": cfg.dim,
         "backend": runtime.running_arch(),  # what Taichi ran on: "cpu", "cuda" or "vulkan"
+        "schedule": sim.schedule,  # what sim.schedule ran as: "serial" or "parallel" (`auto` resolved)
         "settings": scene.to_dict(),
     }
     arrays = {
@@ -287,8 +308,9 @@ class _Throttled:
             self.held = None
 
 
-def _save_checkpoint(path, scene, done, starts, opt_state, elapsed):
-    meta = {"fingerprint": fingerprint(scene), "elapsed": elapsed,
+def _save_checkpoint(path, scene, schedule, done, starts, opt_state, elapsed):
+    """schedule: the one the run steps in (Simulator.schedule), which a resume under `auto` keeps (_resumed_config)."""
+    meta = {"fingerprint": fingerprint(scene), "elapsed": elapsed, "schedule": schedule,
             "rounds": [{"losses": r.losses, "iterations": r.iterations, "converged": r.converged,
                         "reason": r.reason, "grad_norms": r.grad_norms} for r in done]}
     arrays = {f"start_{k}": np.stack([s[k] for s in starts]) for k in STATE_KEYS}

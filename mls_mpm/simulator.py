@@ -107,6 +107,11 @@ class Simulator:
         self.set_initial(x0)
 
     @property
+    def schedule(self):
+        """The schedule this simulator steps in, "serial" or "parallel": cfg.schedule, or what `auto` resolved to."""
+        return "serial" if self._serial else "parallel"
+
+    @property
     def control_shape(self):
         return (self.cfg.n_controls, self.n_particles, self.dim, self.dim)
 

@@ -53,8 +53,8 @@ def one_line(e):
 # ---------------------------------------------------------------------------------------------------------
 # Checkpoints: synthetic ones, written the way a run writes them
 
-def write_checkpoint(scene, out, method_state=None, rounds=0):
-    """A checkpoint of `scene` in the middle of round rounds + 1, as run_scene saves it."""
+def write_checkpoint(scene, out, method_state=None, rounds=0, schedule="serial"):
+    """A checkpoint of `scene` in the middle of round rounds + 1, as run_scene saves it (made in `schedule`)."""
     prob = problem.build(scene)
     N, K = len(prob.x0), scene.sim.n_controls
     rng = np.random.default_rng(0)
@@ -65,7 +65,7 @@ def write_checkpoint(scene, out, method_state=None, rounds=0):
                              "g_first": 0.1, "improved": True, "small": False, "steps": [0.1] * K,
                              "stop_reason": "", "converged": False,
                              "controls": 0.01 * rng.standard_normal((K, N, 2, 2)), "loss": 1.4e-2}
-    run_module._save_checkpoint(out / "checkpoint.npz", scene, done, [start] * (rounds + 1), state, 3.0)
+    run_module._save_checkpoint(out / "checkpoint.npz", scene, schedule, done, [start] * (rounds + 1), state, 3.0)
     return prob
 
 
@@ -139,6 +139,32 @@ def test_a_crafted_lbfgs_checkpoint_with_unequal_pairs_is_refused(tmp_path):
     with pytest.raises(CheckpointError) as e:
         load_checkpoint(scene, tmp_path)
     assert f"array opt_Y is float64 of shape (2, {n - 1}): expected a float array of shape (any, {n})" in one_line(e)
+
+
+def test_a_resume_under_auto_steps_in_the_checkpoints_schedule(tmp_path):
+    """sim.schedule = "auto" resolves in each process (mls_mpm/affinity.py's probe can come out otherwise), so a
+    resume steps in the schedule its checkpoint names (run._resumed_config), either one; a checkpoint that names none
+    (written before checkpoints did) resumes under auto; a scene that names its schedule keeps it; a crafted value is
+    refused with one line."""
+    auto = scene_of("sim.schedule=auto")
+    path = tmp_path / "checkpoint.npz"
+    for schedule in ("serial", "parallel"):
+        write_checkpoint(auto, tmp_path, schedule=schedule)
+        cfg = run_module._resumed_config(path, auto.sim)
+        assert cfg.schedule == schedule and cfg.replace(schedule="auto") == auto.sim  # nothing else changes
+    meta, arrays = load_npz(path, "checkpoint")
+    del meta["schedule"]
+    save_npz(path, meta, arrays)
+    assert run_module._resumed_config(path, auto.sim) is auto.sim
+    serial = scene_of()
+    write_checkpoint(serial, tmp_path, schedule="parallel")  # not made by this scene: its fingerprint refuses it later
+    assert run_module._resumed_config(path, serial.sim) is serial.sim
+    write_checkpoint(auto, tmp_path)
+    edit_checkpoint(path, meta={"schedule": "sideways"})
+    with pytest.raises(CheckpointError) as e:
+        run_module._resumed_config(path, auto.sim)
+    assert one_line(e) == (f'{path}: schedule is "sideways": expected "serial" or "parallel"; not a checkpoint of '
+                           "this program; delete it or re-run")
 
 
 def test_a_resume_with_other_settings_names_them(tmp_path):

@@ -13,7 +13,7 @@ import pytest
 import taichi as ti
 from PIL import Image
 
-from mls_mpm import SimConfig, problem, runtime
+from mls_mpm import SimConfig, config, problem, runtime
 from mls_mpm.checkpoint import load_npz
 from mls_mpm.frames import frame_paths
 from mls_mpm.images import splat_grid
@@ -215,6 +215,36 @@ def test_resume_equals_uninterrupted_parallel_schedule(tmp_path_factory):
     run(scene, whole, render=False)
     interrupt(scene, part, 1)
     run(scene, part, resume=True, render=False)
+    assert_same_run(part, whole)
+
+
+def test_resume_keeps_the_schedule_auto_chose(tmp_path_factory, monkeypatch):
+    """Under sim.schedule = "auto" a resumed process can resolve the other schedule (2D on 2 CPUs follows whether
+    mls_mpm/affinity.py's probe pinned the workers, which can fail on a loaded machine): the resume steps in the
+    schedule its checkpoint names and ends bit for bit where the uninterrupted run ends. auto is made to pick one or
+    the other through its thresholds (config.SERIAL_BELOW*): parallel for the uninterrupted and the interrupted run,
+    serial for the resume."""
+    scene = scene_of("optimize.method=lbfgs", "sim.schedule=auto", "sim.threads=2")
+
+    def auto_picks(schedule):
+        below = 0 if schedule == "parallel" else 10 ** 9
+        for name in ("SERIAL_BELOW", "SERIAL_BELOW_2D_TWO_THREADS", "SERIAL_BELOW_2D_PINNED"):
+            monkeypatch.setattr(config, name, below)
+
+    whole, part, serial = (tmp_path_factory.mktemp(n) for n in ("whole_auto", "part_auto", "serial_auto"))
+    auto_picks("serial")
+    assert run(scene, serial, render=False)["schedule"] == "serial"
+    auto_picks("parallel")
+    assert run(scene, whole, render=False)["schedule"] == "parallel"
+    # what the resume must not do: the two schedules' runs differ in round-off
+    assert not np.array_equal(result(serial)[1]["losses"], result(whole)[1]["losses"])
+    interrupt(scene, part, 1)
+    auto_picks("serial")
+    lines = []
+    fresh_taichi()
+    summary = run_scene(scene, part, resume=True, render=False, emit=lines.append)
+    assert summary["schedule"] == "parallel"
+    assert any(line.endswith("(parallel schedule)") for line in lines), lines
     assert_same_run(part, whole)
 
 
