@@ -65,14 +65,17 @@ def save_npz(path, meta, arrays):
     atomic_write(path, lambda fh: np.savez(fh, **payload))
 
 
-def load_npz(path, what):
-    """(meta, arrays) of a file written by save_npz; CheckpointError names the file when it is unusable."""
+def load_npz(path, what, meta_only=False):
+    """(meta, arrays) of a file written by save_npz; CheckpointError names the file when it is unusable.
+
+    meta_only: read the meta data alone (arrays is then {}): a .npz member is read only when asked for."""
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"{path}: no such file; expected the {what} of a run")
     try:
         with np.load(path, allow_pickle=False) as data:
-            arrays = {k: data[k] for k in data.files}
+            names = ["meta"] if meta_only else data.files
+            arrays = {k: data[k] for k in names}
         meta = json.loads(str(arrays.pop("meta")))
     except Exception as e:  # any decoding failure means the same thing to the user
         raise CheckpointError(f"{path}: not a readable {what} ({type(e).__name__}); delete it or re-run") from None

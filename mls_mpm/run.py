@@ -103,7 +103,7 @@ def _resumed_config(path, cfg):
     before checkpoints did) resumes under `auto`."""
     if cfg.schedule != "auto":
         return cfg  # the scene's own schedule, which the checkpoint's fingerprint holds
-    meta, _ = load_npz(path, "checkpoint")
+    meta, _ = load_npz(path, "checkpoint", meta_only=True)  # _load_checkpoint reads the arrays
     schedule = meta.get("schedule")
     if schedule is None:
         return cfg

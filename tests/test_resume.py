@@ -79,6 +79,8 @@ def test_a_written_checkpoint_loads_back_exactly(tmp_path):
     done, starts, state, elapsed = load_checkpoint(scene, tmp_path)
     assert len(done) == 1 and len(starts) == 2 and elapsed == 3.0
     assert state["k"] == 2 and state["losses"] == [2e-2, 1.5e-2] and state["controls"].shape[0] == 4
+    meta, arrays = load_npz(tmp_path / "checkpoint.npz", "checkpoint")
+    assert arrays and load_npz(tmp_path / "checkpoint.npz", "checkpoint", meta_only=True) == (meta, {})
 
 
 def edit_checkpoint(path, arrays=None, meta=None, drop=()):
