@@ -556,16 +556,16 @@ def test_signal_checkpoints_and_resume_finishes_the_same(tmp_path, sig, code):
     """Ctrl-C (SIGINT) or SIGTERM to a real `mls-mpm run` process: exit 130 / 143 after saving checkpoint.npz;
     `--resume` then ends with the losses, controls and final positions of an uninterrupted run, bit for bit.
 
-    The schedule is set (serial), as tests/test_run.py's replays set it: under `auto` this scene (about 1,300
-    particles + nodes on 2 CPUs) runs in parallel only where mls_mpm/affinity.py's probe pinned the workers, which
-    can fail in one of the three processes on a loaded machine, and the two schedules differ in round-off."""
+    Under `sim.schedule = "auto"`, as users run: this scene (about 1,300 particles + nodes on 2 CPUs) runs in parallel
+    only where mls_mpm/affinity.py's probe pinned the workers, which can fail in one process and not in another on a
+    loaded machine, and the two schedules differ in round-off. The resume steps in the schedule the checkpoint names;
+    the uninterrupted reference is made in that schedule, named."""
     out = tmp_path / "interrupted"
-    serial = ("--set", "sim.schedule=serial")
     log = tmp_path / "log.txt"
     # a budget far beyond what runs before the signal; the resume sets the real one
     with open(log, "w") as fh:
         proc = subprocess.Popen(cli("run", TINY, "--out", out, "--no-render", "--set", "optimize.iterations=100000",
-                                    "--set", "optimize.tol=0.0", *serial), cwd=ROOT, stdout=fh,
+                                    "--set", "optimize.tol=0.0"), cwd=ROOT, stdout=fh,
                                 stderr=subprocess.STDOUT)
     try:
         deadline = time.monotonic() + 180
@@ -587,17 +587,20 @@ def test_signal_checkpoints_and_resume_finishes_the_same(tmp_path, sig, code):
     meta, _ = load_npz(out / "checkpoint.npz", "checkpoint")
     done = meta["opt"]["iteration"]
     budget = done + 2  # at least one more whole temporal iteration after the resume
+    schedule = meta["schedule"]
+    assert f"({schedule} schedule)" in text
 
     resumed = subprocess.run(cli("run", TINY, "--out", out, "--no-render", "--resume", "--set",
-                                 f"optimize.iterations={budget}", "--set", "optimize.tol=0.0", *serial),
+                                 f"optimize.iterations={budget}", "--set", "optimize.tol=0.0"),
                              cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert resumed.returncode == 0, resumed.stdout + resumed.stderr
-    assert "resuming from" in resumed.stdout
+    assert "resuming from" in resumed.stdout and f"({schedule} schedule)" in resumed.stdout
     assert not (out / "checkpoint.npz").exists()
 
     reference = tmp_path / "whole"
     fresh_taichi()
-    run_scene(load_scene(TINY, [f"optimize.iterations={budget}", "optimize.tol=0.0", "sim.schedule=serial"]), reference,
+    run_scene(load_scene(TINY, [f"optimize.iterations={budget}", "optimize.tol=0.0", f"sim.schedule={schedule}"]),
+              reference,
               emit=lambda *_: None, render=False)
     _, got = load_npz(out / "result.npz", "result")
     _, want = load_npz(reference / "result.npz", "result")
