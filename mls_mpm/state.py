@@ -86,6 +86,16 @@ def unpack_mp(q):
     return ti.Vector([q[d] for d in ti.static(range(q.n - 1))]), q[q.n - 1]
 
 
+def pack_mp_np(p, m):
+    """pack_mp of numpy arrays: p (..., dim) and m (...) as one (..., dim + 1) array, for a field of that layout."""
+    return np.concatenate([p, np.asarray(m)[..., None]], axis=-1)
+
+
+def unpack_mp_np(q):
+    """unpack_mp of a numpy array q (..., dim + 1), a field of pack_mp's layout read back: (p, m)."""
+    return q[..., :-1], q[..., -1]
+
+
 @ti.data_oriented
 class State:
     """Fields of one simulation; per-step fields are shaped (steps + 1, ...) or (steps, ...) for the grid.
@@ -164,11 +174,11 @@ class State:
 
     def grid_mass(self):
         """m_i^n of steps 0..T-1 in numpy, shaped (T,) + grid_shape."""
-        return self.grid_mp.to_numpy()[..., self.dim]
+        return unpack_mp_np(self.grid_mp.to_numpy())[1]
 
     def grid_momentum(self):
         """p_i^n of steps 0..T-1 in numpy, shaped (T,) + grid_shape + (dim,)."""
-        return self.grid_mp.to_numpy()[..., :self.dim]
+        return unpack_mp_np(self.grid_mp.to_numpy())[0]
 
     def clear_faults(self):
         self.fault.from_numpy(np.full(2, FAULT_NONE, dtype=np.int64))

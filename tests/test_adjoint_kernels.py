@@ -34,7 +34,7 @@ from conftest import max_rel_err, rel_err
 from mls_mpm import ColorLoss, MassLoss, OTLoss, SimConfig, losses, ot
 from mls_mpm.grid import grid_op
 from mls_mpm.material import stress
-from mls_mpm.state import State, unpack_mp, upload_loss
+from mls_mpm.state import State, pack_mp_np, unpack_mp, unpack_mp_np, upload_loss
 from mls_mpm.persistent import run_persistent
 from mls_mpm.step import run_parallel, run_serial
 from mls_mpm.transfer import g2p, p2g
@@ -123,7 +123,7 @@ class Pair:
     def put_grid(self, m, p):
         """Node masses m (steps,) + grid and momenta p (steps,) + grid + (dim,) into grid_mp (state.pack_mp's
         layout)."""
-        self.put("grid_mp", np.concatenate([p, m[..., None]], axis=-1))
+        self.put("grid_mp", pack_mp_np(p, m))
 
     def randomize(self, rng):
         """Random inputs at every step: x inside the grid (one particle outside), v, C ~ O(1), F near I."""
@@ -161,13 +161,13 @@ def field_tail(field):
 
 def put_grid_adjoint(a, adj_m, adj_p):
     """dL/dm_i, dL/dp_i into AdjointState.adj_grid_mp, which holds (dL/dp_i, dL/dm_i) per node."""
-    a.adj_grid_mp.from_numpy(np.concatenate([adj_p, adj_m[..., None]], axis=-1))
+    a.adj_grid_mp.from_numpy(pack_mp_np(adj_p, adj_m))
 
 
 def grid_adjoint(a):
     """(dL/dm_i, dL/dp_i) from AdjointState.adj_grid_mp."""
-    mp = a.adj_grid_mp.to_numpy()
-    return mp[..., -1], mp[..., :-1]
+    adj_p, adj_m = unpack_mp_np(a.adj_grid_mp.to_numpy())
+    return adj_m, adj_p
 
 
 def tape_grads(t, names, index):
@@ -278,8 +278,7 @@ def test_grid_op_reverse_matches_tape(grid_pair, f):
     with ti.ad.Tape(loss=t.loss):
         grid_op(t, f)
         grid_functional(t, w, f)
-    tape_mp = tape_grads(t, ("grid_mp",), f)["grid_mp"]
-    tape = {"grid_p": tape_mp[..., :-1], "grid_m": tape_mp[..., -1]}
+    tape = dict(zip(("grid_p", "grid_m"), unpack_mp_np(tape_grads(t, ("grid_mp",), f)["grid_mp"])))
 
     a.adj_grid_v.from_numpy(w.np["gv"])
     # grid_op_reverse owns dL/dm_i, dL/dp_i: it overwrites them
