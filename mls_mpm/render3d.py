@@ -9,15 +9,18 @@ Camera: orthographic, looking at the domain's centre (1/2, 1/2, 1/2) from the di
 whole unit cube: its half-width is that of the cube's projection. Pixel (r, c) is the ray through
 centre + u right + v up with u = (2 (c + 1/2) / size - 1) half, v = (1 - 2 (r + 1/2) / size) half.
 
-Along each ray the normalised mass t(x) = m(x) / (density dx^3) (m interpolated linearly between nodes, as the
-meshes of export3d) is sampled every half cell between the ray's entry and exit of the box of the nodes with mass.
+Each ray sees the normalised mass t(x) = m(x) / (density dx^3) (m interpolated linearly between nodes, as the
+meshes of export3d) between its entry and exit of the box of the nodes with mass.
 
-- "surface": the first point where t reaches export3d.ISO_LEVEL (linear between two samples), i.e. the mesh's
-  surface, shaded by a Lambert light (AMBIENT + (1 - AMBIENT) max(0, n . LIGHT), n the field's outward normal)
-  and coloured by the thesis 7.1 colormap of t BENEATH = 2 cells beneath the surface (red where the body is at rest
-  density and thick, green and blue where it is thin or stretched), or, in a colour scene, by c(x) / m(x).
-- "volume": front-to-back emission-absorption compositing of every sample with t > thresholds.empty, emitting
-  the colormap of t (or c / m) with opacity 1 - exp(-VOLUME_DENSITY t h / dx) over a step h, on white.
+- "surface": the first point where t reaches export3d.ISO_LEVEL, i.e. the mesh's surface, found exactly for the
+  interpolant: the ray walks the cells it crosses, and in a cell that can reach the level solves the cubic that t
+  is along the ray there (a march by fixed half-cell steps, before, stepped over parts thinner than its step along
+  the ray: stripes where a thin or stretched part is seen edge-on, gaps in a sheet). The surface is shaded by a
+  Lambert light (AMBIENT + (1 - AMBIENT) max(0, n . LIGHT), n the field's outward normal) and coloured by the
+  thesis 7.1 colormap of t BENEATH = 2 cells beneath the surface (red where the body is at rest density and thick,
+  green and blue where it is thin or stretched), or, in a colour scene, by c(x) / m(x).
+- "volume": front-to-back emission-absorption compositing of samples every half cell with t > thresholds.empty,
+  emitting the colormap of t (or c / m) with opacity 1 - exp(-VOLUME_DENSITY t h / dx) over a step h, on white.
 - "particles": each particle a shaded sphere of about half the particle spacing (nearest one per pixel, found by
   an atomic minimum of (depth, particle index), so the image does not depend on thread order), red or its colour.
 
@@ -39,6 +42,7 @@ AMBIENT = 0.35  # share of a surface's colour lit from everywhere
 VOLUME_DENSITY = 0.6  # optical depth of one cell of material at rest density (t = 1)
 BENEATH = 2  # cells beneath the surface where the surface mode reads t for the colormap
 LIGHT_MIX = (0.8, 0.5, -0.3)  # LIGHT = normalised mix of (towards the camera, up, right): from above left
+ROOT_STEPS = 16  # bisection steps of a surface hit in its cell: 1/65536 of a cell
 
 
 def camera():
@@ -147,29 +151,165 @@ def surface_color(grid_t: ti.template(), grid_c: ti.template(), q, dirn, light, 
     return lit * shade_color(beneath, rgb, colored, e, low, mid, high)
 
 
+@ti.func
+def cell_corners(grid_t: ti.template(), i):
+    """The 8 node values of cell i (nodes i to i + 1 on each axis; 0 <= i <= n - 2, so all inside the grid), corner o
+    at index 4 o0 + 2 o1 + o2."""
+    return ti.Vector([grid_t[i + ti.Vector([o0, o1, o2])] for o0 in ti.static(range(2)) for o1 in ti.static(range(2))
+                      for o2 in ti.static(range(2))])
+
+
+@ti.func
+def cell_cubic(g, o, dirn, s, i, inv_dx):
+    """Coefficients (k0, k1, k2, k3) of the trilinear interpolant of cell i's corners g (cell_corners) along the ray
+    o + (s + s') dirn, as a function of s': in cell units the ray is u0 + s' du, each corner's weight a product of
+    one linear factor a + b s' per axis, so the interpolant is a cubic in s'."""
+    u0, du = (o + s * dirn) * inv_dx - ti.cast(i, float), dirn * inv_dx
+    k = ti.Vector([0.0, 0.0, 0.0, 0.0])
+    for v in ti.static(ti.grouped(ti.ndrange(2, 2, 2))):
+        a = ti.Vector([u0[d] if v[d] == 1 else 1.0 - u0[d] for d in ti.static(range(3))])
+        b = ti.Vector([du[d] if v[d] == 1 else -du[d] for d in ti.static(range(3))])
+        k += g[v[0] * 4 + v[1] * 2 + v[2]] * ti.Vector([
+            a[0] * a[1] * a[2],
+            b[0] * a[1] * a[2] + a[0] * b[1] * a[2] + a[0] * a[1] * b[2],
+            b[0] * b[1] * a[2] + b[0] * a[1] * b[2] + a[0] * b[1] * b[2],
+            b[0] * b[1] * b[2]])
+    return k
+
+
+@ti.func
+def cubic_at(k, s):
+    return k[0] + s * (k[1] + s * (k[2] + s * k[3]))
+
+
+@ti.func
+def turning_points(k, length):
+    """The roots of the cubic k's derivative inside [0, length], in order (length where there are fewer than two):
+    they cut [0, length] into three pieces (some empty) on each of which k is monotonic."""
+    cuts = ti.Vector([length, length])
+    a, b, c = 3.0 * k[3], 2.0 * k[2], k[1]  # k'(s) = a s^2 + b s + c
+    if ti.abs(a) > 1e-12 * (ti.abs(b) + ti.abs(c)):  # a quadratic: two roots, or none (k' keeps its sign)
+        disc = b * b - 4.0 * a * c
+        if disc > 0.0:
+            q = -0.5 * (b + ti.select(b >= 0.0, 1.0, -1.0) * ti.sqrt(disc))  # q != 0; the roots q / a, c / q
+            cuts = ti.Vector([ti.min(q / a, c / q), ti.max(q / a, c / q)])
+    elif ti.abs(b) > 0.0:  # linear
+        cuts[0] = -c / b
+    return ti.math.clamp(cuts, 0.0, length)
+
+
+@ti.func
+def cubic_max(k, length):
+    """The largest value of the cubic k on [0, length]: at an end or at a turning point."""
+    cuts = turning_points(k, length)
+    return ti.max(ti.max(cubic_at(k, 0.0), cubic_at(k, length)), ti.max(cubic_at(k, cuts[0]), cubic_at(k, cuts[1])))
+
+
+@ti.func
+def first_crossing(k, iso, length):
+    """The least s in [0, length] where the cubic k (cell_cubic) reaches iso, or -1 where it stays below.
+
+    On the pieces of turning_points, in order, the first that ends at or above iso and starts below it holds the
+    crossing, found by bisection (ROOT_STEPS halvings of at most one cell's length: well below a pixel at any
+    render size)."""
+    cuts = turning_points(k, length)
+    hit = -1.0
+    lo = 0.0
+    if cubic_at(k, 0.0) >= iso:
+        hit = 0.0
+    for piece in ti.static(range(3)):
+        hi = length
+        if ti.static(piece < 2):
+            hi = cuts[piece]
+        if hit < 0.0 and hi > lo and cubic_at(k, lo) < iso and cubic_at(k, hi) >= iso:
+            for _ in ti.static(range(ROOT_STEPS)):
+                mid = 0.5 * (lo + hi)
+                if cubic_at(k, mid) >= iso:
+                    hi = mid
+                else:
+                    lo = mid
+            hit = hi
+        lo = ti.max(lo, hi)
+    return hit
+
+
+@ti.func
+def cells_start(o, dirn, s, inv_dx, last):
+    """The cells a ray o + s dirn crosses, in order (Amanatides and Woo's traversal), from its point at s: the cell
+    i there (clamped to cells 0..last), the step (+1 or -1) along each axis, the ray's s at the cell's exit face on
+    each axis, and the s between two faces of one axis."""
+    dx = 1.0 / inv_dx
+    i = ti.math.clamp(ti.cast(ti.floor((o + s * dirn) * inv_dx), ti.i32), 0, last)
+    step = ti.Vector([1 if dirn[a] > 0.0 else -1 for a in ti.static(range(3))])
+    t_face = ti.Vector([((i[a] + ti.select(step[a] > 0, 1, 0)) * dx - o[a]) / dirn[a] for a in ti.static(range(3))])
+    t_cell = ti.Vector([dx / ti.abs(dirn[a]) for a in ti.static(range(3))])
+    return i, step, t_face, t_cell
+
+
+@ti.func
+def cells_next(i, step, t_face, t_cell, last):
+    """(i, t_face) of the next cell, through the face the ray reaches first, and whether it is a cell of the grid
+    (0..last on each axis)."""
+    a = 0
+    if t_face[1] < t_face[a]:
+        a = 1
+    if t_face[2] < t_face[a]:
+        a = 2
+    for d in ti.static(range(3)):
+        if d == a:
+            i[d] += step[d]
+            t_face[d] += t_cell[d]
+    return i, t_face, i.min() >= 0 and i.max() <= last
+
+
+@ti.func
+def walk_cells(grid_t: ti.template(), o, dirn, t0, t1, inv_dx, iso, peak: ti.template()):
+    """Along the ray o + s dirn, s in [t0, t1], cell by cell (cells_start, cells_next), the trilinear interpolant of
+    grid_t exactly: with peak False, the least s where it reaches iso (first_crossing in the first cell whose largest
+    corner reaches iso and whose cubic does), -1 where it stays below; with peak True, its largest value (cubic_max
+    in every cell whose largest corner could raise it; iso unused)."""
+    last = grid_t.shape[0] - 2  # the last cell: nodes n - 2 and n - 1
+    result = 0.0 if ti.static(peak) else -1.0
+    if t0 <= t1:
+        i, step, t_face, t_cell = cells_start(o, dirn, t0, inv_dx, last)
+        s = t0
+        while s < t1:
+            s_out = ti.max(s, ti.min(t_face.min(), t1))
+            g = cell_corners(grid_t, i)
+            if ti.static(peak):
+                if g.max() > result:
+                    result = ti.max(result, cubic_max(cell_cubic(g, o, dirn, s, i, inv_dx), s_out - s))
+            elif g.max() >= iso:  # the interpolant in the cell is at most its largest corner
+                hit = first_crossing(cell_cubic(g, o, dirn, s, i, inv_dx), iso, s_out - s)
+                if hit >= 0.0:
+                    result = s + hit
+                    break
+            i, t_face, inside = cells_next(i, step, t_face, t_cell, last)
+            s = s_out
+            if not inside:
+                break
+    return result
+
+
 @ti.kernel
 def march_surface(grid_t: ti.template(), grid_c: ti.template(), image: ti.template(), cam: ti.template(),
                   lo: ti.types.vector(3, float), hi: ti.types.vector(3, float), inv_dx: float, colored: ti.i32,
                   iso: float, e: float, low: float, mid: float, high: float):
-    """The surface mode: each ray's first point where t reaches iso, shaded (`surface_color`); white elsewhere."""
+    """The surface mode: each ray's first point where t reaches iso, shaded (`surface_color`); white elsewhere.
+
+    Exact for the trilinear interpolant: the ray walks the cells it crosses in order (Amanatides and Woo's
+    traversal), and in a cell whose largest corner reaches iso solves for the first crossing of the cubic the
+    interpolant is along the ray (walk_cells, first_crossing). A march by fixed steps missed sheets thinner than its step
+    along the ray, which showed as combs of stripes where a thin part is seen edge-on."""
     size = image.shape[0]
-    h = 0.5 / inv_dx  # half a cell
     light = (LIGHT_MIX[0] * cam[0] + LIGHT_MIX[1] * cam[2] + LIGHT_MIX[2] * cam[1]).normalized()
     for r, c in image:
         o, dirn = ray(r, c, size, cam)
         t0, t1 = box_span(o, dirn, lo, hi)
-        prev = 0.0
-        s = t0
-        while s <= t1:
-            t = trilinear_at(grid_t, o + s * dirn, inv_dx)
-            if t >= iso:
-                frac = (iso - prev) / ti.max(t - prev, 1e-12)  # prev < iso <= t
-                q = o + (s - h + frac * h) * dirn
-                put(image, r, c, to_u8(surface_color(grid_t, grid_c, q, dirn, light, inv_dx, colored, e, low, mid,
-                                                     high)))
-                break
-            prev = t
-            s += h
+        hit = walk_cells(grid_t, o, dirn, t0, t1, inv_dx, iso, False)
+        if hit >= 0.0:
+            put(image, r, c, to_u8(surface_color(grid_t, grid_c, o + hit * dirn, dirn, light, inv_dx, colored, e, low,
+                                                 mid, high)))
 
 
 @ti.kernel
@@ -202,18 +342,16 @@ def march_volume(grid_t: ti.template(), grid_c: ti.template(), image: ti.templat
 
 @ti.kernel
 def peak_along_rays(grid_t: ti.template(), peak: ti.template(), cam: ti.template(), inv_dx: float):
-    """peak[r, c] = the largest t along pixel (r, c)'s ray through the unit cube (a target's silhouette field)."""
+    """peak[r, c] = the largest t along pixel (r, c)'s ray through the grid (a target's silhouette field): the largest
+    of the cubics (cell_cubic) of the cells it crosses whose largest corner could raise it, so that a thin part is
+    not stepped over (as march_surface). Beyond the last node the interpolant only falls, so the ray is followed to
+    the box of the nodes."""
     size = peak.shape[0]
-    h = 0.5 / inv_dx
+    far = (grid_t.shape[0] - 1) / inv_dx
     for r, c in peak:
         o, dirn = ray(r, c, size, cam)
-        t0, t1 = box_span(o, dirn, ti.Vector([0.0, 0.0, 0.0]), ti.Vector([1.0, 1.0, 1.0]))
-        top = 0.0
-        s = t0
-        while s <= t1:
-            top = ti.max(top, trilinear_at(grid_t, o + s * dirn, inv_dx))
-            s += h
-        peak[r, c] = top
+        t0, t1 = box_span(o, dirn, ti.Vector([0.0, 0.0, 0.0]), ti.Vector([far, far, far]))
+        peak[r, c] = walk_cells(grid_t, o, dirn, t0, t1, inv_dx, 0.0, True)
 
 
 @ti.kernel
