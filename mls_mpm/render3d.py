@@ -42,7 +42,7 @@ AMBIENT = 0.35  # share of a surface's colour lit from everywhere
 VOLUME_DENSITY = 0.6  # optical depth of one cell of material at rest density (t = 1)
 BENEATH = 2  # cells beneath the surface where the surface mode reads t for the colormap
 LIGHT_MIX = (0.8, 0.5, -0.3)  # LIGHT = normalised mix of (towards the camera, up, right): from above left
-ROOT_STEPS = 16  # bisection steps of a surface hit in its cell: 1/65536 of a cell
+ROOT_STEPS = 8  # bisection steps of a surface hit in its cell, then a chord: within 1/256 of a cell
 
 
 def camera():
@@ -160,21 +160,24 @@ def cell_corners(grid_t: ti.template(), i):
 
 
 @ti.func
+def lerp_along(p0, p1, u, du):
+    """p0 (1 - w) + p1 w with w = u + du s, for polynomials p0, p1 in s (coefficient vectors, lowest first): one
+    degree more."""
+    base, rise = p0 + u * (p1 - p0), du * (p1 - p0)  # the weight's constant part, its part in s (shifted up)
+    n = ti.static(p0.n)
+    return ti.Vector([base[0]] + [base[j] + rise[j - 1] for j in ti.static(range(1, n))] + [rise[n - 1]])
+
+
+@ti.func
 def cell_cubic(g, o, dirn, s, i, inv_dx):
     """Coefficients (k0, k1, k2, k3) of the trilinear interpolant of cell i's corners g (cell_corners) along the ray
-    o + (s + s') dirn, as a function of s': in cell units the ray is u0 + s' du, each corner's weight a product of
-    one linear factor a + b s' per axis, so the interpolant is a cubic in s'."""
-    u0, du = (o + s * dirn) * inv_dx - ti.cast(i, float), dirn * inv_dx
-    k = ti.Vector([0.0, 0.0, 0.0, 0.0])
-    for v in ti.static(ti.grouped(ti.ndrange(2, 2, 2))):
-        a = ti.Vector([u0[d] if v[d] == 1 else 1.0 - u0[d] for d in ti.static(range(3))])
-        b = ti.Vector([du[d] if v[d] == 1 else -du[d] for d in ti.static(range(3))])
-        k += g[v[0] * 4 + v[1] * 2 + v[2]] * ti.Vector([
-            a[0] * a[1] * a[2],
-            b[0] * a[1] * a[2] + a[0] * b[1] * a[2] + a[0] * a[1] * b[2],
-            b[0] * b[1] * a[2] + b[0] * a[1] * b[2] + a[0] * b[1] * b[2],
-            b[0] * b[1] * b[2]])
-    return k
+    o + (s + s') dirn, as a function of s': in cell units the ray is u + s' du, and interpolating linearly along one
+    axis after the other (lerp_along) raises the degree by one each time, so the interpolant is a cubic in s'."""
+    u, du = (o + s * dirn) * inv_dx - ti.cast(i, float), dirn * inv_dx
+    # corner index 4 o0 + 2 o1 + o2: along axis 0 pairs (j, j + 4), then axis 1 (j, j + 2), then axis 2 (0, 1)
+    l0 = [lerp_along(ti.Vector([g[j]]), ti.Vector([g[j + 4]]), u[0], du[0]) for j in ti.static(range(4))]
+    l1 = [lerp_along(l0[j], l0[j + 2], u[1], du[1]) for j in ti.static(range(2))]
+    return lerp_along(l1[0], l1[1], u[2], du[2])
 
 
 @ti.func
@@ -209,27 +212,33 @@ def cubic_max(k, length):
 def first_crossing(k, iso, length):
     """The least s in [0, length] where the cubic k (cell_cubic) reaches iso, or -1 where it stays below.
 
-    On the pieces of turning_points, in order, the first that ends at or above iso and starts below it holds the
-    crossing, found by bisection (ROOT_STEPS halvings of at most one cell's length: well below a pixel at any
-    render size)."""
+    Of the pieces of turning_points, in order, the first that ends at or above iso holds the crossing (each earlier
+    piece ended below iso, so this one starts below it, and k is monotonic on it); ROOT_STEPS halvings of that
+    bracket, then the chord's zero in the last one: within 2^-ROOT_STEPS of a cell, far below a pixel at any
+    render size."""
     cuts = turning_points(k, length)
     hit = -1.0
-    lo = 0.0
     if cubic_at(k, 0.0) >= iso:
         hit = 0.0
-    for piece in ti.static(range(3)):
-        hi = length
-        if ti.static(piece < 2):
-            hi = cuts[piece]
-        if hit < 0.0 and hi > lo and cubic_at(k, lo) < iso and cubic_at(k, hi) >= iso:
-            for _ in ti.static(range(ROOT_STEPS)):
-                mid = 0.5 * (lo + hi)
-                if cubic_at(k, mid) >= iso:
-                    hi = mid
+    else:
+        lo, a, b = 0.0, 0.0, -1.0
+        for piece in ti.static(range(3)):
+            hi = length
+            if ti.static(piece < 2):
+                hi = cuts[piece]
+            if b < 0.0 and hi > lo and cubic_at(k, hi) >= iso:
+                a, b = lo, hi
+            lo = ti.max(lo, hi)
+        if b >= 0.0:
+            fa, fb = cubic_at(k, a) - iso, cubic_at(k, b) - iso  # fa < 0 <= fb
+            for _ in range(ROOT_STEPS):
+                mid = 0.5 * (a + b)
+                fm = cubic_at(k, mid) - iso
+                if fm >= 0.0:
+                    b, fb = mid, fm
                 else:
-                    lo = mid
-            hit = hi
-        lo = ti.max(lo, hi)
+                    a, fa = mid, fm
+            hit = a + (b - a) * fa / (fa - fb)
     return hit
 
 

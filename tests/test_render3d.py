@@ -5,7 +5,8 @@ import pytest
 import taichi as ti
 
 from mls_mpm.field3d import MassField, mass_field
-from mls_mpm.render3d import ROOT_STEPS, Preview3D, camera, first_crossing, project
+from mls_mpm.render3d import ROOT_STEPS, Preview3D, camera, cell_corners, cell_cubic, cubic_at, first_crossing, project, \
+    trilinear_at
 
 N_GRID = 16
 DX = 1.0 / N_GRID
@@ -122,8 +123,8 @@ def crossings(k: ti.types.ndarray(), iso: float, length: ti.types.ndarray(), out
 
 def test_first_crossing_is_the_first_root_of_the_cubic():
     """render3d.first_crossing (a cell's surface hit) against numpy's roots of k(s) - iso: on random cubics over
-    random lengths, the least root in [0, length] where the cubic rises through iso, to the bisection's precision
-    (length / 2^ROOT_STEPS); -1 where there is none. Cubics that only touch iso (a double root) or cross it within
+    random lengths, the least root in [0, length] where the cubic rises through iso, within the bracket the
+    bisection leaves (length / 2^ROOT_STEPS); -1 where there is none. Cubics that only touch iso (a double root) or cross it within
     1e-6 of an end are left out: there the answer is a matter of round-off."""
     rng = np.random.default_rng(3)
     n, iso = 4000, 0.5
@@ -246,3 +247,37 @@ def test_a_3d_run_renders_frames_particles_meshes_and_videos(tmp_path, monkeypat
     assert lines[2].startswith("per frame: simulation ") and " mesh " in lines[2]
     with pytest.raises(rr.RenderError, match=r"^--mode mass: expected one of surface, volume, particles \(a 3D run\)"):
         rr.render_run(tmp_path, mode="mass", emit=lines.append)
+
+
+@ti.kernel
+def along_cell(grid: ti.template(), i: ti.types.vector(3, ti.i32), o: ti.types.vector(3, float),
+               dirn: ti.types.vector(3, float), s: float, inv_dx: float, ds: ti.types.ndarray(),
+               out: ti.types.ndarray()):
+    k = cell_cubic(cell_corners(grid, i), o, dirn, s, i, inv_dx)
+    for j in range(ds.shape[0]):
+        out[j, 0] = cubic_at(k, ds[j])
+        out[j, 1] = trilinear_at(grid, o + (s + ds[j]) * dirn, inv_dx)
+
+
+def test_cell_cubic_is_the_trilinear_field_along_the_ray():
+    """render3d.cell_cubic (the interpolant along a ray in one cell, as a cubic) against render3d.trilinear_at (the
+    field interpolated at each point) on random corner values and random rays through a cell, at points spread
+    over the cell's span of the ray: equal to 1e-9 (float64)."""
+    rng = np.random.default_rng(5)
+    n, inv_dx = 4, 4.0
+    grid = ti.field(ti.f64, (n, n, n))
+    grid.from_numpy(rng.uniform(0, 2, (n, n, n)))
+    for _ in range(20):
+        cell = rng.integers(0, n - 1, 3)
+        p = (cell + rng.uniform(0, 1, 3)) / inv_dx  # a point in the cell
+        dirn = rng.normal(size=3)
+        dirn /= np.linalg.norm(dirn)
+        s = rng.uniform(-1, 1)  # the ray's parameter at p: o = p - s dirn
+        lo = (cell / inv_dx - p) / dirn  # the ray's span in the cell about p, per axis
+        hi = ((cell + 1) / inv_dx - p) / dirn
+        span = (np.minimum(lo, hi).max(), np.maximum(lo, hi).min())
+        ds = np.linspace(span[0] + 1e-6, span[1] - 1e-6, 9)  # inside: at a face of the grid trilinear_at jumps
+        out = np.zeros((9, 2))
+        along_cell(grid, cell.astype(np.int32), p - s * dirn, dirn, s, inv_dx, ds, out)
+        assert np.abs(out[:, 0] - out[:, 1]).max() < 1e-9, (cell, out)
+        assert np.ptp(out[:, 1]) > 1e-3  # the field varies along the ray: the check has teeth
