@@ -1,8 +1,8 @@
 """The headless preview of a 3D run: frames of the mass field seen by a fixed camera, on the CPU, no display.
 
-A small Taichi ray marcher of the node grid (field3d.MassField), chosen over an external renderer (Mitsuba 3 and
+A small Taichi ray caster of the node grid (field3d.MassField), chosen over an external renderer (Mitsuba 3 and
 the like) because it needs no new dependency, draws exactly the field the meshes are cut from, and renders a
-512^2 frame in milliseconds on 2 CPU cores (BENCHMARKS.md, "3D preview").
+512^2 frame in milliseconds on 2 CPU cores (BENCHMARKS.md, "3D outputs per frame").
 
 Camera: orthographic, looking at the domain's centre (1/2, 1/2, 1/2) from the direction VIEW_FROM = (1, 0.8,
 1.4) (right, above and in front: the x axis points right, y up, z towards the viewer), y up. The image shows the
