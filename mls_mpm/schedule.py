@@ -9,7 +9,9 @@ the detail. Without a schedule there is one stage holding every loss grid.
 
 The budget (`optimize.max_seconds`, 0: none) is a deadline for the whole run, compile time included. The
 kernels are compiled first (one forward and backward pass), then a stage that starts with R seconds left gets
-R * its share / the shares left; one that finishes early leaves its time to the next. An optimizer past its
+R * its share / the shares left; one that finishes early leaves its time to the next. A stage whose controls
+leave the measured loss (every grid's, the last stage's) above that of the run's starting controls hands the next
+stage those starting controls instead (`_kept`). An optimizer past its
 deadline stops after its current unit of work, like an interrupt, and its controls (the best so far: every
 optimizer here only accepts decreases, except adam) are the result, with the stop reason "time budget".
 
@@ -103,8 +105,8 @@ def staged(method, stages, max_seconds=0.0, started=None, clock=time.perf_counte
                     # (a list of one, as a stage of no iterations), measured like loss_start, not stage k's
                     losses, grad_norms = losses + list(res.losses), grad_norms + list(res.grad_norms)
                     iterations += res.iterations
-                    sim.set_active_grids(stages[-1].grids)
-                    res = OptimizeResult(res.controls, [sim.forward(res.controls)], 0, False, BUDGET_REASON)
+                    kept = _kept(sim, stages, k, res.controls, controls, loss_start, emit)
+                    res = OptimizeResult(kept, [sim.forward(kept)], 0, False, BUDGET_REASON)
                 if k == len(stages) - 1 or out_of_time:
                     sim.set_active_grids(None)
                     return _result(res, losses, grad_norms, iterations, loss_start)
@@ -112,10 +114,25 @@ def staged(method, stages, max_seconds=0.0, started=None, clock=time.perf_counte
             if k < len(stages) - 1:
                 losses, grad_norms = losses + list(res.losses), grad_norms + list(res.grad_norms)
                 iterations += res.iterations
+                c = _kept(sim, stages, k, c, controls, loss_start, emit)
         sim.set_active_grids(None)
         return _result(res, losses, grad_norms, iterations, loss_start)
 
     return run
+
+
+def _kept(sim, stages, k, c, start, loss_start, emit):
+    """The controls stage k + 1 starts from (or the run ends with, out of time): stage k's, unless they leave the loss the run is measured by (the
+    last stage's) above loss_start, that of the run's starting controls: then those (a coarse loss can be lowered
+    by breaking the body into blobs that the fine loss then cannot undo; the later stages would start worse off
+    than from nothing). Deterministic, so a resumed run decides the same."""
+    sim.set_active_grids(stages[-1].grids)
+    measured = sim.forward(c)
+    if measured <= loss_start:
+        return c
+    emit(f"stage {k + 1}/{len(stages)} left the loss of grids {list(stages[-1].grids)} at {measured:.6e}, above "
+         f"its {loss_start:.6e} at the start: going on from the starting controls instead")
+    return start
 
 
 def _result(res, losses, grad_norms, iterations, loss_start):

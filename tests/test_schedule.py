@@ -187,6 +187,40 @@ def test_staged_concatenates_the_stages():
     assert [line.split(":")[0] for line in lines] == ["stage 1/2", "stage 2/2"]
 
 
+class TearingSim(FakeSim):
+    """Grid 16's loss falls as the controls fall (10 + c), grid 32's rises three times as fast (10 - 3 c): lowering
+    the coarse loss alone raises the loss of both, as a coarse stage that tears the body into blobs."""
+
+    def forward(self, c):
+        self.log.append(self.active)
+        return (10.0 + float(c) if 16 in self.active else 0.0) + (10.0 - 3.0 * float(c) if 32 in self.active else 0.0)
+
+
+def test_a_stage_that_raises_the_measured_loss_hands_on_the_starting_controls():
+    """Stage 1 lowers grid 16's loss to 8 (c = -2) but leaves both grids' at 24, above their 20 at c = 0: stage 2
+    starts from c = 0 (its first loss is 20, not 24), and the run says so; where stage 1 lowers both grids' loss
+    (FakeSim, test_staged_concatenates_the_stages) it starts from stage 1's controls."""
+    clock, starts, lines = Clock(), [], []
+    run = staged(fake_method(clock, 1.0, starts), [Stage((16,), 1.0), Stage((16, 32), 2.0)], clock=clock)
+    res = run(TearingSim(), 0.0, settings(6), emit=lines.append)
+    assert res.losses[:3] == [10.0, 9.0, 8.0]
+    assert res.losses[3] == 20.0 == res.loss_start  # stage 2 from the starting controls
+    assert res.controls == -4.0  # its 4 iterations from 0
+    assert any(line.startswith("stage 1/2 left the loss of grids [16, 32] at 2.400000e+01, above its 2.000000e+01")
+               for line in lines), lines
+
+
+def test_out_of_time_in_a_stage_that_raised_the_measured_loss_ends_with_the_starting_controls():
+    """The budget runs out in stage 1 of 2 after it raised both grids' loss: the run ends with the starting controls
+    and their loss, not stage 1's worse ones."""
+    clock, starts, lines = Clock(), [], []
+    run = staged(fake_method(clock, 100.0, starts), [Stage((16,), 1.0), Stage((16, 32), 1.0)], max_seconds=50.0,
+                 clock=clock)
+    res = run(TearingSim(), 0.0, settings(10), emit=lines.append)
+    assert res.controls == 0.0 and res.losses[-1] == 20.0 == res.loss_start
+    assert res.reason == BUDGET_REASON
+
+
 def test_one_stage_is_the_plain_optimizer():
     clock, starts, lines = Clock(), [], []
     run = staged(fake_method(clock, 1.0, starts), [Stage((16, 32), 1.0)], clock=clock)
