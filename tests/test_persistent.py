@@ -183,21 +183,26 @@ def test_a_lane_that_works_longer_is_waited_for():
     absence). Without ticks the same waits count as slow.
 
     Needs both lanes on a CPU at once, which other work (pytest-xdist's other worker) can prevent: each try first
-    times both lanes working alike. If that took about the time of one lane alone (the CPUs were free) and the try
-    still gave up, the test fails; a try that gave up under load is repeated, up to 5 times, then skipped."""
+    times both lanes working alike. A try that gave up is repeated, up to 5 times; if all gave up, the test fails where
+    any control took about the time of one lane alone (the CPUs were free, yet the lane was given up for), else
+    skips. (It failed at the first such try before: once in a full suite on 2 cores, 2026-12-07, load between the
+    control and the try.)"""
     runtime.ensure(SimConfig(dtype="f64", arch="cpu", threads=2))  # two threads: both lanes at once
     lane_rounds(ticks=True, both=True)  # compiles
     lane_rounds(ticks=True)
     alone = min(lane_rounds(ticks=True, meet=False)[1] for _ in range(3))  # lane 1's work alone, no barrier
+    free_tries = 0  # tries that gave up although the control just before found the CPUs free
     for _ in range(5):
         control, took = lane_rounds(ticks=True, both=True)
         sync = lane_rounds(ticks=True)[0]
         if sync[1] == 0:
             assert sync[0] == 20
             break
-        free = control == [20, 0, 0] and took < 1.5 * alone
-        assert not free, f"a lane that works and ticks was given up for ({sync}) on free CPUs"
+        free_tries += control == [20, 0, 0] and took < 1.5 * alone
     else:
+        # a lane given up for because it worked (the bug) gives up on every try; load that comes between a control
+        # and its try (pytest-xdist's other worker starting to compile) only on some
+        assert free_tries == 0, f"a lane that works and ticks was given up for ({sync}) on free CPUs, every try"
         pytest.skip(f"every try gave up ({sync}): other work held the CPUs")
     silent = lane_rounds(ticks=False)[0]  # the same waits without ticks: slow (8 of them give up, on free CPUs)
     assert silent[2] >= 1, silent
