@@ -16,14 +16,14 @@ reproduces the run and a user can edit it:
   and the eq 11 mass loss on the fine grid, which shapes the detail; each term weighted by 1 / its value at
   rest, so both start at 1 whatever the shapes' sizes; a coarse stage (OT alone) first, then both
   (optimize.schedule; a coarse stage that leaves the sum above its start is dropped, schedule._kept: capsule to a
-  thin ring at --quality fast, 24^3, had torn into three blobs, iou 0.18, and reaches 0.60 without that stage). Colour images (`--loss color`, or two images of more than one colour region each):
-  the transport of each colour channel's colour-mass on the coarse grid and eq 13 on the fine one, both from
-  the first iteration (a coarse stage of colour transport alone left color_swap's colours scrambled: iou 0.36
-  against 0.87 without it);
+  thin ring at --quality fast, 24^3, had torn into three blobs, iou 0.18, and reaches 0.60 without that stage).
+  Colour images (`--loss color`, or two images of more than one colour region each): the transport of each
+  colour channel's colour-mass on the coarse grid and eq 13 on the fine one, both from the first iteration (a
+  coarse stage of colour transport alone left color_swap's colours scrambled: iou 0.36 against 0.87 without it);
 - L-BFGS, the quality's iteration count and time budget (optimize.max_seconds); at default quality three rounds
-  and at best two (optimize.rounds): each round starts at rest from where the one before ended and optimizes
-  again, which finishes what one long optimization stalls on (a square into a thin L at default: iou 0.61 in one
-  round, 0.84-0.94 in two, 0.96-0.98 in three, BENCHMARKS.md).
+  and at best two (3D: three at both; optimize.rounds): each round starts at rest from where the one before ended
+  and optimizes again, which finishes what one long optimization stalls on (a square into a thin L at default: iou
+  0.61 in one round, 0.84-0.94 in two, 0.96-0.98 in three, BENCHMARKS.md).
 
 In 3D (sim.dim = 3: INITIAL or TARGET a mesh, "shape:..." or "extrude:IMAGE", shapes.py; or dim=3) the same
 choices are made on the 3D quality's grid (QUALITIES_3D: 32^3 at default) with 1 particle per cell volume, no
@@ -83,8 +83,11 @@ QUALITIES = {
 }
 QUALITIES_3D = {  # 3D: n_grid^3 nodes and a 4^3 stencil cost more a step, so a coarser grid and 1 particle per cell
     "fast": Quality(n_grid=24, iterations=30, max_seconds=120.0, particles_per_cell=1),
-    "default": Quality(n_grid=32, iterations=60, max_seconds=300.0, particles_per_cell=1),
-    "best": Quality(n_grid=32, iterations=150, max_seconds=0.0, particles_per_cell=1),
+    # three rounds in 2D's two minutes, as in 2D: on six pairs of shapes not in the repository (BENCHMARKS.md "3D
+    # morphs of shapes from outside the repository") iou 0.90-0.99, against 0.66-0.96 for one round of 60
+    # iterations, which stopped at its iteration count after 38-65 s of its 300
+    "default": Quality(n_grid=32, iterations=150, max_seconds=120.0, particles_per_cell=1, rounds=3),
+    "best": Quality(n_grid=32, iterations=150, max_seconds=0.0, particles_per_cell=1, rounds=3),
 }
 
 
