@@ -308,8 +308,8 @@ def march_surface(grid_t: ti.template(), grid_c: ti.template(), image: ti.templa
 
     Exact for the trilinear interpolant: the ray walks the cells it crosses in order (Amanatides and Woo's
     traversal), and in a cell whose largest corner reaches iso solves for the first crossing of the cubic the
-    interpolant is along the ray (walk_cells, first_crossing). A march by fixed steps missed sheets thinner than its step
-    along the ray, which showed as combs of stripes where a thin part is seen edge-on."""
+    interpolant is along the ray (walk_cells, first_crossing). A march by fixed steps missed sheets thinner than its
+    step along the ray, which showed as combs of stripes where a thin part is seen edge-on."""
     size = image.shape[0]
     light = (LIGHT_MIX[0] * cam[0] + LIGHT_MIX[1] * cam[2] + LIGHT_MIX[2] * cam[1]).normalized()
     for r, c in image:

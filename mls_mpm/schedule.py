@@ -11,9 +11,9 @@ The budget (`optimize.max_seconds`, 0: none) is a deadline for the whole run, co
 kernels are compiled first (one forward and backward pass), then a stage that starts with R seconds left gets
 R * its share / the shares left; one that finishes early leaves its time to the next. A stage whose controls
 leave the measured loss (every grid's, the last stage's) above that of the run's starting controls hands the next
-stage those starting controls instead (`_kept`). An optimizer past its
-deadline stops after its current unit of work, like an interrupt, and its controls (the best so far: every
-optimizer here only accepts decreases, except adam) are the result, with the stop reason "time budget".
+stage those starting controls instead (`_kept`). An optimizer past its deadline stops after its current unit of
+work, like an interrupt, and its controls (the best so far: every optimizer here only accepts decreases, except
+adam) are the result, with the stop reason "time budget".
 
 The checkpoint of a staged run is the inner optimizer's state plus STAGE_STATE: which stage it is in, and the
 losses, gradient norms and iterations of the stages before. A stage that had finished when the run was
@@ -105,8 +105,8 @@ def staged(method, stages, max_seconds=0.0, started=None, clock=time.perf_counte
                     # (a list of one, as a stage of no iterations), measured like loss_start, not stage k's
                     losses, grad_norms = losses + list(res.losses), grad_norms + list(res.grad_norms)
                     iterations += res.iterations
-                    kept = _kept(sim, stages, k, res.controls, controls, loss_start, emit)
-                    res = OptimizeResult(kept, [sim.forward(kept)], 0, False, BUDGET_REASON)
+                    kept, measured = _kept(sim, stages, k, res.controls, controls, loss_start, emit)
+                    res = OptimizeResult(kept, [measured], 0, False, BUDGET_REASON)
                 if k == len(stages) - 1 or out_of_time:
                     sim.set_active_grids(None)
                     return _result(res, losses, grad_norms, iterations, loss_start)
@@ -114,7 +114,7 @@ def staged(method, stages, max_seconds=0.0, started=None, clock=time.perf_counte
             if k < len(stages) - 1:
                 losses, grad_norms = losses + list(res.losses), grad_norms + list(res.grad_norms)
                 iterations += res.iterations
-                c = _kept(sim, stages, k, c, controls, loss_start, emit)
+                c = _kept(sim, stages, k, c, controls, loss_start, emit)[0]
         sim.set_active_grids(None)
         return _result(res, losses, grad_norms, iterations, loss_start)
 
@@ -122,17 +122,18 @@ def staged(method, stages, max_seconds=0.0, started=None, clock=time.perf_counte
 
 
 def _kept(sim, stages, k, c, start, loss_start, emit):
-    """The controls stage k + 1 starts from (or the run ends with, out of time): stage k's, unless they leave the loss the run is measured by (the
-    last stage's) above loss_start, that of the run's starting controls: then those (a coarse loss can be lowered
-    by breaking the body into blobs that the fine loss then cannot undo; the later stages would start worse off
-    than from nothing). Deterministic, so a resumed run decides the same."""
+    """(controls, their loss the run is measured by: the last stage's) that stage k + 1 starts from, or the run ends
+    with when out of time: stage k's controls c, unless they leave that loss above loss_start, that of the run's
+    starting controls: then those and loss_start (a coarse loss can be lowered by breaking the body into blobs that
+    the fine loss then cannot undo; the later stages would start worse off than from nothing). Deterministic, so a
+    resumed run decides the same."""
     sim.set_active_grids(stages[-1].grids)
     measured = sim.forward(c)
     if measured <= loss_start:
-        return c
+        return c, measured
     emit(f"stage {k + 1}/{len(stages)} left the loss of grids {list(stages[-1].grids)} at {measured:.6e}, above "
          f"its {loss_start:.6e} at the start: going on from the starting controls instead")
-    return start
+    return start, loss_start
 
 
 def _result(res, losses, grad_norms, iterations, loss_start):

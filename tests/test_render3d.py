@@ -5,8 +5,8 @@ import pytest
 import taichi as ti
 
 from mls_mpm.field3d import MassField, mass_field
-from mls_mpm.render3d import ROOT_STEPS, Preview3D, camera, cell_corners, cell_cubic, cubic_at, first_crossing, project, \
-    trilinear_at
+from mls_mpm.render3d import (ROOT_STEPS, Preview3D, camera, cell_corners, cell_cubic, cubic_at, first_crossing,
+                              project, trilinear_at)
 
 N_GRID = 16
 DX = 1.0 / N_GRID
@@ -124,8 +124,8 @@ def crossings(k: ti.types.ndarray(), iso: float, length: ti.types.ndarray(), out
 def test_first_crossing_is_the_first_root_of_the_cubic():
     """render3d.first_crossing (a cell's surface hit) against numpy's roots of k(s) - iso: on random cubics over
     random lengths, the least root in [0, length] where the cubic rises through iso, within the bracket the
-    bisection leaves (length / 2^ROOT_STEPS); -1 where there is none. Cubics that only touch iso (a double root) or cross it within
-    1e-6 of an end are left out: there the answer is a matter of round-off."""
+    bisection leaves (length / 2^ROOT_STEPS); -1 where there is none. Cubics that only touch iso (a double root) or
+    cross it within 1e-6 of an end are left out: there the answer is a matter of round-off."""
     rng = np.random.default_rng(3)
     n, iso = 4000, 0.5
     k = rng.normal(size=(n, 4)) * [0.4, 1.5, 3.0, 3.0] + [0.2, 0, 0, 0]
