@@ -152,14 +152,15 @@ def build_parser():
     bench.add_argument("--out", help="tradeoff: output folder (default: renders/tradeoff_<scene name>/); "
                                      "scaling: folder of scaling.png (default: .); gradient: also write the "
                                      "table to this file (its folder must exist); quality: output folder "
-                                     "(default: renders/bench_quality/)")
+                                     "(default: renders/bench_quality/, with --dim 3 renders/bench_quality_3d/)")
     bench.add_argument("--quick", action="store_true",
                        help="gradient: 40 steps (3D: 10); tradeoff: fewer rows and iterations (under 10 minutes); quality: "
                             "3 pairs at --quality fast")
     bench.add_argument("--arch", choices=["cpu", "gpu", "cuda", "vulkan"], default="cpu",
                        help="gradient: the Taichi backend measured")
     bench.add_argument("--dim", type=int, choices=[2, 3], default=None,
-                       help="gradient: only the cases of this dimension (default: the 2D and the 3D cases)")
+                       help="gradient: only the cases of this dimension (default: the 2D and the 3D cases); "
+                            "quality: the 2D suite of images (default) or the 3D suite of solids and meshes")
     bench.add_argument("--against", metavar="REV", default=None,
                        help="gradient: measure git revision REV (checked out in a temporary worktree, removed "
                             "afterwards) and the working tree side by side, alternating their runs, and print "
@@ -175,7 +176,8 @@ def build_parser():
     bench.add_argument("--quality", choices=["fast", "default", "best"], default=None,
                        help="quality: the morph's --quality (default: default; fast with --quick)")
     bench.add_argument("--pairs", metavar="NAME,...", default=None,
-                       help="quality: only these pairs (names in mls_mpm/bench/quality.py; default: all)")
+                       help="quality: only these pairs (names in mls_mpm/bench/quality.py, 3D: pairs3d.py; "
+                            "default: all)")
     bench.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                        help="quality: passed to every morph, e.g. --set optimize.iterations=10 (repeatable)")
     bench.add_argument("--warm-cache", action="store_true",
@@ -324,8 +326,8 @@ def cmd_bench(args):
         raise BenchError(f"bench {args.what}: SCENE {args.scene}: a scene applies to bench tradeoff only; drop it")
     if args.arch != "cpu" and args.what != "gradient":
         raise BenchError(f"bench {args.what}: --arch applies to bench gradient only; drop it")
-    if args.dim is not None and args.what != "gradient":
-        raise BenchError(f"bench {args.what}: --dim applies to bench gradient only; drop it")
+    if args.dim is not None and args.what not in ("gradient", "quality"):
+        raise BenchError(f"bench {args.what}: --dim applies to bench gradient and bench quality only; drop it")
     if args.against is not None and args.what != "gradient":
         raise BenchError(f"bench {args.what}: --against applies to bench gradient only; drop it")
     if args.repeats is not None and args.what != "gradient":
@@ -348,7 +350,7 @@ def cmd_bench(args):
                 raise BenchError("bench quality: --pairs: expected pair names separated by commas, e.g. "
                                  "--pairs split_two,letter_A")
         bench_quality(quality=args.quality, quick=args.quick, workers=args.workers or 1, out=args.out, names=names,
-                      overrides=args.set, warm_cache=args.warm_cache)
+                      overrides=args.set, warm_cache=args.warm_cache, dim=args.dim or 2)
         return 0
     if args.what == "gradient":
         from .bench import bench_against, bench_gradient

@@ -14,9 +14,11 @@ import pytest
 from PIL import Image
 from scipy import ndimage
 
-from mls_mpm.bench import quality
-from mls_mpm.bench.quality import CATEGORIES, PAIRS, QUICK, TARGETS, Target, judge, suite_figures
+from mls_mpm import shapes
+from mls_mpm.bench import pairs3d, quality
+from mls_mpm.bench.quality import CATEGORIES, PAIRS, QUICK, TARGETS, TARGETS_3D, Target, judge, suite_figures
 from mls_mpm.cli import build_parser, main
+from mls_mpm.meshes import load_mesh
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -142,6 +144,111 @@ def test_colour_pair_swaps_red_and_blue():
         assert tuple(rgb[32, 20]) == left and tuple(rgb[32, 44]) == right, path.name
 
 
+# ---- the 3D pairs (pairs3d.py) -------------------------------------------------------------------------------------
+
+PAIRS_3D = {p.name: p for p in pairs3d.PAIRS}
+
+
+def test_3d_pairs_cover_every_category_with_names_of_their_own():
+    assert len(pairs3d.PAIRS) >= 10 and len(PAIRS_3D) == len(pairs3d.PAIRS)
+    assert {p.category for p in pairs3d.PAIRS} == set(pairs3d.CATEGORIES)
+    assert set(pairs3d.QUICK) <= set(PAIRS_3D) and len(pairs3d.QUICK) == 3
+    assert not set(PAIRS_3D) & {p.name for p in PAIRS}  # a name says which suite it is in
+    used = {t for p in pairs3d.PAIRS for t in (p.initial_text, p.target_text) if t in pairs3d.MESHES}
+    assert used == set(pairs3d.MESHES)  # every mesh is morphed, and in four formats
+    assert {Path(m).suffix for m in used} == {".obj", ".ply", ".stl", ".off"}
+
+
+@pytest.fixture(scope="module")
+def meshes(tmp_path_factory):
+    return pairs3d.write_meshes(tmp_path_factory.mktemp("meshes"))
+
+
+def test_3d_meshes_are_written_the_same_twice_and_read_as_a_users_are(meshes, tmp_path):
+    again = pairs3d.write_meshes(tmp_path / "again", ["torus.obj", "bar.stl"])
+    assert sorted(p.name for p in again.iterdir()) == ["bar.stl", "torus.obj"]  # only those asked for, no temp
+    for name in ("torus.obj", "bar.stl"):
+        assert (again / name).read_bytes() == (meshes / name).read_bytes(), name
+    for name in pairs3d.MESHES:
+        tri, notes = load_mesh(meshes / name)  # watertight with volume, or it raises
+        assert len(tri) >= 12 and notes == [], name
+
+
+def voxels(text, meshes, n=40):
+    """The shape fitted into the unit cube (its frame's larger side n cells), as a boolean (n, n, n) array of the
+    cell centres inside it."""
+    pair = pairs3d.Pair3D("v", "thin", "", text, text)
+    solid = shapes.solid(pair.inputs(meshes)[0])
+    side = max(solid.hi - solid.lo)
+    c = (np.arange(n) + 0.5) / n * side
+    grid = np.stack(np.meshgrid(c, c, c, indexing="ij"), axis=-1).reshape(-1, 3) + solid.lo
+    return np.asarray(solid.inside(grid)).reshape(n, n, n), side / n
+
+
+@pytest.mark.parametrize("name, initial, target", [
+    # (pieces of material, Euler number: pieces - tunnels + cavities) of the initial and the target shape
+    ("shrink_ball", (1, 1), (1, 1)),
+    ("grow_box", (1, 1), (1, 1)),
+    ("corner_ball", (1, 1), (1, 1)),
+    ("capsule_to_ring", (1, 1), (1, 0)),
+    ("box_to_torus", (1, 1), (1, 0)),
+    ("torus_to_ball", (1, 0), (1, 1)),
+    ("ball_to_two", (1, 1), (2, 2)),
+    ("two_to_bar", (2, 2), (1, 1)),
+    ("ball_to_bar", (1, 1), (1, 1)),
+    ("cone_to_cylinder", (1, 1), (1, 1)),
+    ("color_slab", (1, 1), (1, 1)),
+])
+def test_3d_pair_topology(name, initial, target, meshes):
+    from skimage.measure import euler_number
+
+    pair = PAIRS_3D[name]
+    for text, want in ((pair.initial_text, initial), (pair.target_text, target)):
+        mask, _ = voxels(text, meshes)
+        pieces = ndimage.label(mask, structure=np.ones((3, 3, 3)))[1]
+        assert (pieces, euler_number(mask, connectivity=3)) == want, (name, text)
+
+
+def volume(text, meshes, fitted=False, n=200_000):
+    """The shape's volume in its frame's units, by n random points (about 1% off); fitted: once its frame is
+    scaled to a larger side of 1, as the morph fits every shape into the same region."""
+    pair = pairs3d.Pair3D("v", "thin", "", text, text)
+    solid = shapes.solid(pair.inputs(meshes)[0])
+    box = solid.hi - solid.lo
+    points = solid.lo + np.random.default_rng(0).random((n, 3)) * box
+    inside = np.asarray(solid.inside(points)).mean() * np.prod(box)
+    return inside / max(box) ** 3 if fitted else inside
+
+
+def test_3d_volume_ratios_are_as_the_pairs_say(meshes):
+    def ratio(name, fitted=False):
+        p = PAIRS_3D[name]
+        return volume(p.target_text, meshes, fitted) / volume(p.initial_text, meshes, fitted)
+
+    assert ratio("shrink_ball") == pytest.approx(1 / 3, rel=0.04)
+    assert ratio("grow_box") == pytest.approx(3.0, rel=0.04)
+    assert ratio("ball_to_bar", fitted=True) == pytest.approx(1 / 4.7, rel=0.04)
+    # built-ins keep their sizes in the unit cube: as their phrases say, or the same volume
+    for name, want in (("corner_ball", 1.0), ("box_to_torus", 0.68), ("ball_to_two", 0.59), ("two_to_bar", 1.0)):
+        assert ratio(name) == pytest.approx(want, rel=0.04), name
+        assert (f" of {want:g} its volume" in PAIRS_3D[name].tests) == (want != 1.0), name
+
+
+def test_corner_ball_target_sits_in_a_corner(meshes):
+    mask, h = voxels(PAIRS_3D["corner_ball"].target_text, meshes)
+    centre = (np.argwhere(mask).mean(axis=0) + 0.5) * h
+    assert np.allclose(centre, 0.72, atol=0.01) and np.allclose(
+        (np.argwhere(voxels(PAIRS_3D["corner_ball"].initial_text, meshes)[0]).mean(axis=0) + 0.5) * h, 0.5, atol=0.01)
+
+
+def test_colour_slab_extrudes_the_colour_pair_and_its_images_are_checked():
+    pair = PAIRS_3D["color_slab"]
+    two_d = {p.name: p for p in PAIRS}["color_bar_to_disk"]
+    assert pair.images() == [two_d.initial, two_d.target]
+    assert pairs3d.PAIRS_DIR == quality.PAIRS_DIR
+    assert PAIRS_3D["torus_to_ball"].images() == []
+
+
 # ---- options -----------------------------------------------------------------------------------------------------
 
 def test_bench_quality_options_parse():
@@ -179,6 +286,12 @@ def nothing_runs(monkeypatch):
     (["bench", "scaling", "--set", "sim.n_grid=32"], "bench scaling: --set applies to bench quality only"),
     (["bench", "gradient", "--warm-cache"], "bench gradient: --warm-cache applies to bench quality only"),
     (["bench", "quality", "--out", "/proc/quality"], "--out /proc/quality: cannot create the folder"),
+    (["bench", "quality", "--dim", "3", "--pairs", "box_to_torus,shrink_disk"], "bench quality: --pairs "
+     "shrink_disk: no such pair (shrink_disk is a pair of --dim 2); expected names from shrink_ball, grow_box, "),
+    (["bench", "quality", "--pairs", "box_to_torus"], "bench quality: --pairs box_to_torus: no such pair "
+                                                      "(box_to_torus is a pair of --dim 3); expected names from "),
+    (["bench", "quality", "--dim", "4"], "bench: argument --dim: invalid choice: 4"),
+    (["bench", "scaling", "--dim", "3"], "bench scaling: --dim applies to bench gradient and bench quality only"),
 ])
 def test_bench_quality_options_refused(argv, says, capsys, nothing_runs):
     """One line, exit 2, nothing run (s.toml does not exist: no scene is read)."""
@@ -245,8 +358,8 @@ summary = {"iou": iou, "mass_error": 0.04, "mass_outside_target": 0.01, "wall_se
 def test_quick_suite_with_faked_morphs_writes_the_table_and_csv(tmp_path, monkeypatch, capsys):
     """Three pair processes (a few lines of Python standing in for morph), two at a time: one passes, one misses
     the fast iou target, one exits 1; the table and the CSV hold each, in suite order, and the suite goes on."""
-    def fake(pair, out_dir, q, threads, overrides=()):
-        assert (q, list(overrides)) == ("fast", ["sim.n_grid=32"])
+    def fake(pair, out_dir, q, threads, overrides=(), meshes=None):
+        assert (q, list(overrides), meshes) == ("fast", ["sim.n_grid=32"], None)
         return [sys.executable, "-c", FAKE_MORPH, str(out_dir), str(pair.initial)]
 
     monkeypatch.setattr(quality, "morph_command", fake)
@@ -277,6 +390,50 @@ def test_quick_suite_with_faked_morphs_writes_the_table_and_csv(tmp_path, monkey
     assert rows[1]["iou"] == "" and rows[1]["result"].startswith("error: exit 1: ")
     assert float(rows[2]["wall_seconds"]) > 0
     assert sorted(p.name for p in out.iterdir()) == ["corner_disk", "letter_T", "quality.csv", "quality.md"]
+
+
+FAKE_MORPH_3D = """
+import json, sys
+from pathlib import Path
+from mls_mpm.shapes import solid
+out, initial, target = Path(sys.argv[1]), sys.argv[2], sys.argv[3]
+for text in (initial, target):
+    solid(text)  # a mesh path that is missing or broken, or a bad shape text, raises here
+out.mkdir(parents=True)
+iou = 0.95 if initial.endswith("torus.obj") else 0.85
+json.dump({"iou": iou, "mass_error": 0.05, "wall_seconds": 1.0}, open(out / "summary.json", "w"))
+"""
+
+
+def test_3d_suite_with_faked_morphs_writes_its_meshes_first(tmp_path, monkeypatch, capsys):
+    """--dim 3: the meshes its pairs morph are written into <out>/meshes/ before any runs, passed as paths (a
+    stand-in morph reads them as shapes), and the rows are judged against the 3D targets."""
+    def fake(pair, out_dir, q, threads, overrides=(), meshes=None):
+        assert meshes == out / "meshes" and q == "default"
+        return [sys.executable, "-c", FAKE_MORPH_3D, str(out_dir), *pair.inputs(meshes)]
+
+    monkeypatch.setattr(quality, "morph_command", fake)
+    out = tmp_path / "q3"
+    assert main(["bench", "quality", "--dim", "3", "--pairs", "torus_to_ball,ball_to_two", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert printed.startswith("quality benchmark: 2 3D pairs at --quality default, ")
+    assert sorted(p.name for p in (out / "meshes").iterdir()) == ["ball.obj", "torus.obj"]
+    md = (out / "quality.md").read_text()
+    assert md.startswith("`mls-mpm morph --quality default` on 2 shape pairs (3D: built-in solids, trimesh meshes, ")
+    assert f"Target per pair: {TARGETS_3D['default'].describe()} " in md and "wall <= 180 s" in md
+    rows = [ln for ln in md.splitlines() if ln.startswith("| ") and not ln.startswith("| pair")]
+    assert rows[0].startswith("| torus_to_ball | torus mesh to a ball mesh | 0.950 | 0.050 | ") and \
+        rows[0].endswith(" | pass |")
+    assert rows[1].startswith("| ball_to_two | ") and rows[1].endswith(" | fail: iou 0.850 < 0.90 |")
+    assert f"- command: `mls-mpm bench quality --dim 3 --quality default --workers 1 --out {out} --pairs " \
+           "torus_to_ball,ball_to_two`" in md
+
+
+def test_3d_morph_command_passes_shape_texts_and_mesh_paths(tmp_path):
+    cmd = quality.morph_command(PAIRS_3D["capsule_to_ring"], tmp_path / "o", "fast", 2, (), tmp_path / "m")
+    assert cmd[4:6] == [str(tmp_path / "m" / "capsule.obj"), str(tmp_path / "m" / "ring.ply")]
+    cmd = quality.morph_command(PAIRS_3D["box_to_torus"], tmp_path / "o", "fast", 2)
+    assert cmd[4:6] == ["shape:box", "shape:torus"]
 
 
 CACHE_PROBE = """

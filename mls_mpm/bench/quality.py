@@ -1,16 +1,17 @@
 """`mls-mpm bench quality`: how close `mls-mpm morph` gets, and how fast, on a suite of shape pairs.
 
-The pairs are drawn by scenes/make_images.py into scenes/images/pairs/ (<name>_initial.png, <name>_target.png);
-PAIRS lists them with the category each covers and what it tests. Every pair runs through `mls-mpm morph` in a
-process of its own, `workers` at a time, each with cores // workers Taichi threads (`--set sim.threads=T`), into
-<out>/<name>/, and the figures are read back from its summary.json: iou, mass_error (total-variation distance of
-the node masses on the finest loss grid), mass_outside_target, color_error for a colour pair, and the wall time
-of the whole process (start-up and compilation included), which is what the targets bound. Each pair compiles in
-an empty Taichi offline cache of its own (removed afterwards), as a shape of the user's own does (the particle count
-is compiled into the kernels); warm_cache=True (--warm-cache) uses the user's cache instead, where an earlier run
-of the same pair leaves every kernel compiled. A pair whose process
-fails gets a row with its last stderr line and the suite goes on. The table (quality.md, ready for
-BENCHMARKS.md) and quality.csv are written atomically once every pair has finished.
+The 2D pairs are drawn by scenes/make_images.py into scenes/images/pairs/ (<name>_initial.png, <name>_target.png);
+PAIRS lists them with the category each covers and what it tests. The 3D suite (dim=3, `--dim 3`) is pairs3d.PAIRS:
+built-in solids, meshes that trimesh writes into <out>/meshes/ first, an extruded colour pair. Every pair runs
+through `mls-mpm morph` in a process of its own, `workers` at a time, each with cores // workers Taichi threads
+(`--set sim.threads=T`), into <out>/<name>/, and the figures are read back from its summary.json: iou, mass_error
+(total-variation distance of the node masses on the finest loss grid), mass_outside_target, color_error for a colour
+pair, and the wall time of the whole process (start-up and compilation included), which is what the targets bound.
+Each pair compiles in an empty Taichi offline cache of its own (removed afterwards), as a shape of the user's own
+does (the particle count is compiled into the kernels); warm_cache=True (--warm-cache) uses the user's cache
+instead, where an earlier run of the same pair leaves every kernel compiled. A pair whose process fails gets a row
+with its last stderr line and the suite goes on. The table (quality.md, ready for BENCHMARKS.md) and quality.csv are
+written atomically once every pair has finished.
 """
 import contextlib
 import csv
@@ -28,11 +29,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..checkpoint import atomic_write
+from . import pairs3d
 from .child import cpu_model
 from .output import BenchError, writable_folder
-
-PAIRS_DIR = Path(__file__).resolve().parents[2] / "scenes" / "images" / "pairs"
+from .pairs3d import PAIRS_DIR
 DEFAULT_OUT = Path("renders") / "bench_quality"
+DEFAULT_OUT_3D = Path("renders") / "bench_quality_3d"
 QUALITIES = ("fast", "default", "best")
 
 # What the suite has to cover; every pair names the one it stands for.
@@ -53,6 +55,14 @@ class Pair:
     @property
     def target(self) -> Path:
         return PAIRS_DIR / f"{self.name}_target.png"
+
+    def inputs(self, meshes=None) -> tuple[str, str]:
+        """INITIAL and TARGET for `mls-mpm morph` (as pairs3d.Pair3D.inputs; a 2D pair has no meshes)."""
+        return str(self.initial), str(self.target)
+
+    def images(self) -> list[Path]:
+        """The shipped images the pair morphs."""
+        return [self.initial, self.target]
 
 
 PAIRS = (
@@ -94,22 +104,31 @@ class Target:
 
 # The targets of the quality levels; `best` has no time bound of its own and keeps the default's accuracy bounds.
 TARGETS = {"fast": Target(0.80, None, 30.0), "default": Target(0.90, 0.15, 120.0), "best": Target(0.90, 0.15)}
+# 3D: the same accuracy; the wall bounds are the presets' budgets (morph.QUALITIES_3D: 120 s at fast and default)
+# plus a minute for start-up and the 3D kernels' compilation in an empty cache
+TARGETS_3D = {"fast": Target(0.80, None, 60.0), "default": Target(0.90, 0.15, 180.0), "best": Target(0.90, 0.15)}
+SUITES = {2: (PAIRS, QUICK, TARGETS), 3: (pairs3d.PAIRS, pairs3d.QUICK, TARGETS_3D)}
 
 FIELDS = ["pair", "category", "tests", "iou", "mass_error", "mass_outside_target", "color_error", "wall_seconds",
           "run_seconds", "stop_reason", "result"]
 
 
-def select(names=None, quick=False):
-    """The pairs named (a list, in suite order), the quick subset, or all; BenchError for an unknown name."""
-    by_name = {p.name: p for p in PAIRS}
+def select(names=None, quick=False, dim=2):
+    """The pairs of the dim's suite named (a list, in suite order), its quick subset, or all; BenchError for an
+    unknown name (naming the --dim that has it, if the other suite does)."""
+    pairs, quick_names, _ = SUITES[dim]
+    by_name = {p.name: p for p in pairs}
     if names is None:
-        names = QUICK if quick else [p.name for p in PAIRS]
+        names = quick_names if quick else [p.name for p in pairs]
     unknown = [n for n in names if n not in by_name]
     if unknown:
-        raise BenchError(f"bench quality: --pairs {','.join(unknown)}: no such pair; expected names from "
+        other = 5 - dim
+        elsewhere = [n for n in unknown if n in {p.name for p in SUITES[other][0]}]
+        hint = f" ({elsewhere[0]} is a pair of --dim {other})" if elsewhere else ""
+        raise BenchError(f"bench quality: --pairs {','.join(unknown)}: no such pair{hint}; expected names from "
                          f"{', '.join(by_name)}")
     wanted = set(names)
-    return [p for p in PAIRS if p.name in wanted]
+    return [p for p in pairs if p.name in wanted]
 
 
 def threads_per_worker(workers):
@@ -117,9 +136,10 @@ def threads_per_worker(workers):
     return max(1, len(os.sched_getaffinity(0)) // workers)
 
 
-def morph_command(pair, out_dir, quality, threads, overrides=()):
-    """The `mls-mpm morph` command line of one pair, in this interpreter; user overrides come last and win."""
-    cmd = [sys.executable, "-m", "mls_mpm.cli", "morph", str(pair.initial), str(pair.target), "--out", str(out_dir),
+def morph_command(pair, out_dir, quality, threads, overrides=(), meshes=None):
+    """The `mls-mpm morph` command line of one pair, in this interpreter; user overrides come last and win.
+    meshes: the folder of a 3D pair's meshes (pairs3d.write_meshes)."""
+    cmd = [sys.executable, "-m", "mls_mpm.cli", "morph", *pair.inputs(meshes), "--out", str(out_dir),
            "--quality", quality, "--no-render", "--quiet", "--set", f"sim.threads={threads}"]
     for ov in overrides:
         cmd += ["--set", ov]
@@ -129,16 +149,16 @@ def morph_command(pair, out_dir, quality, threads, overrides=()):
 CACHE_VARIABLE = "TI_OFFLINE_CACHE_FILE_PATH"  # where Taichi keeps the kernels it compiled
 
 
-def run_pair(pair, out_dir, quality, threads, overrides=(), warm_cache=False):
+def run_pair(pair, out_dir, quality, threads, overrides=(), warm_cache=False, meshes=None):
     """Morph one pair in its own process; its row (figures as numbers, "result" judged later by `judge`).
-    warm_cache=False: in an empty Taichi cache of its own (module docstring)."""
+    warm_cache=False: in an empty Taichi cache of its own (module docstring); meshes: as morph_command."""
     env = {**os.environ, "TI_LOG_LEVEL": "error"}
     t0 = time.perf_counter()
     with (contextlib.nullcontext() if warm_cache else
           tempfile.TemporaryDirectory(prefix="mls_mpm_quality_cache_", ignore_cleanup_errors=True)) as cache:
         if cache is not None:
             env[CACHE_VARIABLE] = cache
-        res = subprocess.run(morph_command(pair, out_dir, quality, threads, overrides), capture_output=True,
+        res = subprocess.run(morph_command(pair, out_dir, quality, threads, overrides, meshes), capture_output=True,
                              text=True, env=env)
     row = {"pair": pair.name, "category": pair.category, "tests": pair.tests,
            "wall_seconds": time.perf_counter() - t0}
@@ -186,10 +206,10 @@ def suite_figures(rows):
     return out
 
 
-def command_line(quality, quick, workers, out, names, overrides, warm_cache=False):
+def command_line(quality, quick, workers, out, names, overrides, warm_cache=False, dim=2):
     """The `mls-mpm bench quality` command that repeats this run."""
-    argv = ["mls-mpm", "bench", "quality"] + (["--quick"] if quick else []) + ["--quality", quality, "--workers",
-                                                                                str(workers), "--out", str(out)]
+    argv = ["mls-mpm", "bench", "quality"] + (["--dim", "3"] if dim == 3 else []) + (["--quick"] if quick else [])
+    argv += ["--quality", quality, "--workers", str(workers), "--out", str(out)]
     if warm_cache:
         argv.append("--warm-cache")
     if names is not None:
@@ -211,13 +231,15 @@ def _cell(text):
     return str(text).replace("|", "\\|")
 
 
-def table(rows, quality, workers, threads, command, warm_cache=False):
+def table(rows, quality, workers, threads, command, warm_cache=False, dim=2):
     """quality.md: the settings line, one row per pair, the suite's worst and median, the CPU and the command."""
-    target = TARGETS[quality]
+    target = SUITES[dim][2][quality]
+    where = ("scenes/images/pairs/" if dim == 2 else
+             "3D: built-in solids, trimesh meshes, extruded images; mls_mpm/bench/pairs3d.py")
     n_pass = sum(r["result"] == "pass" for r in rows)
     cache = ("Taichi's cache as it was (kernels an earlier run compiled are not compiled again)" if warm_cache else
              "each in an empty Taichi cache (every kernel compiles, as for a shape of your own)")
-    lines = [f"`mls-mpm morph --quality {quality}` on {_count(len(rows), 'shape pair')} (scenes/images/pairs/), "
+    lines = [f"`mls-mpm morph --quality {quality}` on {_count(len(rows), 'shape pair')} ({where}), "
              f"{workers} at a time, {_count(threads, 'Taichi thread')} each, {cache}. Target per pair: "
              f"{target.describe()} (wall: the whole process, start-up and compilation included).", "",
              "| pair | tests | iou | mass_error | mass outside | colour error | wall s | result |",
@@ -255,9 +277,10 @@ def _csv_text(rows):
 
 
 def bench_quality(quality=None, quick=False, workers=1, out=None, names=None, overrides=(), emit=print,
-                  warm_cache=False):
-    """Run the suite (or the pairs named, or the quick subset at fast quality); write quality.md and quality.csv
-    in out (default renders/bench_quality/); returns the rows in suite order. warm_cache: see run_pair."""
+                  warm_cache=False, dim=2):
+    """Run the dim's suite (or the pairs named, or the quick subset at fast quality); write quality.md and
+    quality.csv in out (default renders/bench_quality/, 3D: renders/bench_quality_3d/); returns the rows in suite
+    order. warm_cache: see run_pair."""
     if quick and names is not None:
         raise BenchError("bench quality: --quick and --pairs: --quick picks its own pairs; give one of them")
     if workers < 1:
@@ -265,23 +288,28 @@ def bench_quality(quality=None, quick=False, workers=1, out=None, names=None, ov
     quality = quality or ("fast" if quick else "default")
     if quality not in QUALITIES:
         raise BenchError(f"bench quality: --quality {quality}: expected one of {', '.join(QUALITIES)}")
-    pairs = select(names, quick)
-    missing = [str(p) for pair in pairs for p in (pair.initial, pair.target) if not p.is_file()]
+    pairs = select(names, quick, dim)
+    missing = [str(p) for pair in pairs for p in pair.images() if not p.is_file()]
     if missing:
         raise BenchError(f"bench quality: {missing[0]}: no such image ({len(missing)} missing); draw them with "
                          "python scenes/make_images.py")
-    out = writable_folder(out or DEFAULT_OUT)
+    out = writable_folder(out or (DEFAULT_OUT if dim == 2 else DEFAULT_OUT_3D))
     threads = threads_per_worker(workers)
-    command = command_line(quality, quick, workers, out, names, overrides, warm_cache)
-    emit(f"quality benchmark: {_count(len(pairs), 'pair')} at --quality {quality}, {workers} at a time with "
+    command = command_line(quality, quick, workers, out, names, overrides, warm_cache, dim)
+    meshes = None
+    if dim == 3:
+        wanted = sorted({t for p in pairs for t in (p.initial_text, p.target_text) if t in pairs3d.MESHES})
+        meshes = pairs3d.write_meshes(out / "meshes", wanted) if wanted else None
+    emit(f"quality benchmark: {_count(len(pairs), f'{dim}D pair')} at --quality {quality}, {workers} at a time with "
          f"{_count(threads, 'thread')} each, {'a warm' if warm_cache else 'each in an empty'} Taichi cache -> {out}")
     rows = {}
     pool = ThreadPoolExecutor(max_workers=workers)
     try:
-        running = [pool.submit(run_pair, p, out / p.name, quality, threads, overrides, warm_cache) for p in pairs]
+        running = [pool.submit(run_pair, p, out / p.name, quality, threads, overrides, warm_cache, meshes)
+                   for p in pairs]
         for done, future in enumerate(as_completed(running), 1):
             row = future.result()
-            row["result"] = judge(row, TARGETS[quality])
+            row["result"] = judge(row, SUITES[dim][2][quality])
             rows[row["pair"]] = row
             emit(f"[{done}/{len(pairs)}] {row['pair']:<18s} iou {_num(row.get('iou')):>5s}  mass_error "
                  f"{_num(row.get('mass_error')):>5s}  outside {_num(row.get('mass_outside_target')):>5s}  "
@@ -289,7 +317,7 @@ def bench_quality(quality=None, quick=False, workers=1, out=None, names=None, ov
     finally:  # Ctrl-C: pairs not yet started are dropped; running ones got the signal too (same process group)
         pool.shutdown(wait=True, cancel_futures=True)
     rows = [rows[p.name] for p in pairs]
-    md = table(rows, quality, workers, threads, command, warm_cache)
+    md = table(rows, quality, workers, threads, command, warm_cache, dim)
     atomic_write(out / "quality.md", lambda fh: fh.write(md.encode()))
     atomic_write(out / "quality.csv", lambda fh: fh.write(_csv_text(rows).encode()))
     emit("")
