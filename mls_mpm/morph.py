@@ -21,9 +21,9 @@ reproduces the run and a user can edit it:
   colour channel's colour-mass on the coarse grid and eq 13 on the fine one, both from the first iteration (a
   coarse stage of colour transport alone left color_swap's colours scrambled: iou 0.36 against 0.87 without it);
 - L-BFGS, the quality's iteration count and time budget (optimize.max_seconds); at default quality three rounds
-  and at best two (3D: three at both; optimize.rounds): each round starts at rest from where the one before ended
-  and optimizes again, which finishes what one long optimization stalls on (a square into a thin L at default: iou
-  0.61 in one round, 0.84-0.94 in two, 0.96-0.98 in three, BENCHMARKS.md).
+  and at best two (3D: two at fast, three at both others; optimize.rounds): each round starts at rest from where
+  the one before ended and optimizes again, which finishes what one long optimization stalls on (a square into a
+  thin L at default: iou 0.61 in one round, 0.84-0.94 in two, 0.96-0.98 in three, BENCHMARKS.md).
 
 In 3D (sim.dim = 3: INITIAL or TARGET a mesh, "shape:..." or "extrude:IMAGE", shapes.py; or dim=3) the same
 choices are made on the 3D quality's grid (QUALITIES_3D: 32^3 at default) with 1 particle per cell volume, no
@@ -82,7 +82,9 @@ QUALITIES = {
     "best": Quality(n_grid=64, iterations=800, max_seconds=0.0, rounds=2),
 }
 QUALITIES_3D = {  # 3D: n_grid^3 nodes and a 4^3 stencil cost more a step, so a coarser grid and 1 particle per cell
-    "fast": Quality(n_grid=24, iterations=30, max_seconds=120.0, particles_per_cell=1),
+    # fast: two rounds of 30 iterations: on the 11 pairs of `bench quality --dim 3`, iou 0.84-1.00 in 17-34 s against
+    # 0.60-1.00 in 15-29 s for one round (a thin ring 0.60 -> 0.84, the colour slab 0.74 -> 0.89; BENCHMARKS.md)
+    "fast": Quality(n_grid=24, iterations=30, max_seconds=120.0, particles_per_cell=1, rounds=2),
     # three rounds in 2D's two minutes, as in 2D: on six pairs of shapes not in the repository (BENCHMARKS.md "3D
     # morphs of shapes from outside the repository") iou 0.90-0.99, against 0.66-0.96 for one round of 60
     # iterations, which stopped at its iteration count after 38-65 s of its 300
