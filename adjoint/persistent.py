@@ -12,7 +12,8 @@ bit for bit.
 """
 import taichi as ti
 
-from mls_mpm.persistent import barrier, chunk, chunks, lane_shares, node_of, tick
+from mls_mpm.active import node_in, reverse_box, volume
+from mls_mpm.persistent import barrier, chunk, chunks, lane_shares, own_nodes, tick
 from mls_mpm.state import LANE_TASK
 
 from .step import grid_node_reverse, particle_adjoint
@@ -24,7 +25,7 @@ def run_persistent_reverse(s: ti.template(), a: ti.template(), f0: ti.i32, f1: t
     before it; twin of mls_mpm.persistent.run_persistent)."""
     for item in range(s.lanes * LANE_TASK):
         if item % LANE_TASK == 0:
-            lane, lo, hi, k0, k1 = lane_shares(s, item)
+            lane, lo, hi = lane_shares(s, item)
             arrived = 0
             alive = True
             for j in range(f1 - f0 + 1):
@@ -32,11 +33,13 @@ def run_persistent_reverse(s: ti.template(), a: ti.template(), f0: ti.i32, f1: t
                 if alive and j > 0:
                     arrived += s.lanes
                     alive = barrier(s, arrived)
-                if alive:
+                if alive:  # the active boxes of steps f and f - 1 (mls_mpm.active), as the forward stored them
+                    b0, b1 = reverse_box(s, f, f0, f1)
+                    k0, k1 = own_nodes(s, lane, volume(b0, b1))
                     for c in range(chunks(k0, k1)):
                         c0, c1 = chunk(k0, k1, c)
                         for k in range(c0, c1):
-                            grid_node_reverse(s, a, f, node_of(s, k), f0, f1)
+                            grid_node_reverse(s, a, f, node_in(b0, b1, k), f0, f1)
                         tick(s, lane)
                     arrived += s.lanes
                     alive = barrier(s, arrived)

@@ -7,10 +7,12 @@ only their second halves: the reverse G2P of step f1 - 1 from the adjoint of ste
 velocity adjoint is zeroed after use, so the next reverse step finds its accumulator zero without an extra loop.
 Where the forward keeps one grid velocity slot (State.every_velocity off), the reverse grid loop of step f
 recomputes v_i of step f - 1 from the stored m_i, p_i for the reverse G2P of step f - 1 (eq 17 and the walls, by the
-forward's own grid_op_node: one division per node).
+forward's own grid_op_node: one division per node). With lanes the grid loop of step f visits the active boxes
+(mls_mpm.active) of steps f and f - 1 that the forward stored, not the whole grid.
 """
 import taichi as ti
 
+from mls_mpm.active import node_in, reverse_box, volume
 from mls_mpm.grid import grid_op_node
 from mls_mpm.state import LANE_TASK, lane_span
 
@@ -95,8 +97,13 @@ def step_loops_reverse(s: ti.template(), a: ti.template(), f, f0, f1):
     The forward's loops in reverse order; reverse G2P scatters into dL/dv_i as forward P2G scatters into m_i, p_i,
     with the same private grids per thread (lanes).
     """
-    for I in ti.grouped(ti.ndrange(*s.grid_shape)):
-        grid_node_reverse(s, a, f, I, f0, f1)
+    if ti.static(s.lanes > 0):  # the grid loop over the active boxes of steps f and f - 1 (mls_mpm.active)
+        b0, b1 = reverse_box(s, f, f0, f1)
+        for k in range(volume(b0, b1)):
+            grid_node_reverse(s, a, f, node_in(b0, b1, k), f0, f1)
+    else:
+        for I in ti.grouped(ti.ndrange(*s.grid_shape)):
+            grid_node_reverse(s, a, f, I, f0, f1)
     if ti.static(s.lanes > 0):
         for item in range(s.lanes * LANE_TASK):  # one task per lane, one thread each: mls_mpm.state.LANE_TASK
             lane, lo, hi = lane_span(s, item)

@@ -59,9 +59,11 @@ def parts(cfg, n_particles, grids=(), position_loss=False, tape=False):
     ]
     lanes = 0 if tape else cfg.lanes(N)
     if lanes:  # forward private grids (m, p) and the adjoint's (dL/dv); one step's G_p (State.G_step); the barrier's
-        # counters (State.sync, State.progress: state.PROGRESS_LINE = 16 a lane, mls_mpm/persistent.py)
+        # counters (State.sync, State.progress: state.PROGRESS_LINE = 16 a lane, mls_mpm/persistent.py); the active
+        # boxes of every step and lane (State.box, State.lane_box: 2 dim i32 each, mls_mpm/active.py)
         out.append(Part(f"the {lanes} per-thread grids of {n}{sq} nodes", "sim.n_grid or sim.threads",
-                        lanes * nodes * (1 + 2 * d) * w + N * d * d * w + 4 * (3 + 16 * lanes)))
+                        lanes * nodes * (1 + 2 * d) * w + N * d * d * w + 4 * (3 + 16 * lanes)
+                        + 4 * 2 * d * (T + lanes)))
     if grids:
         field = numpy = 0
         for res, ch, has_alpha in grids:

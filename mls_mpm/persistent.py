@@ -4,11 +4,12 @@ last and meets the others at spin barriers between the loops of a step.
 Each parallel loop launched on its own wakes the other CPUs and refills their caches: on a 2-CPU virtual machine,
 whose idle CPUs halt, 0.03-0.09 ms a launch, more than a small step's loop costs (benchmarks/dispatch_cost.py,
 BENCHMARKS.md "Issue 14"). Here lane l's thread takes one task of the launch (state.LANE_TASK items, of which the
-first does the work) and runs, step after step: the stresses and the scatter of its own particles (lane_span's share)
-into its private grid, a barrier, the grid operations of its share of the nodes (summing the private grids), a
-barrier, and G2P of its own particles (the next step's first barrier orders it before the grid loop that reads what
-it scattered). The per-particle and per-node bodies are step.py's, over the same shares in the same order, so the
-states equal those of run_parallel bit for bit.
+first does the work) and runs, step after step: the stresses and the scatter of its own particles (lane_span's
+share) into its private grid, widening its own box of their stencils, a barrier, the grid operations of its share of
+the step's active box (the lanes' boxes joined: active.py; summing the private grids), a barrier, and G2P of its own
+particles (the next step's first barrier orders it before the grid loop that reads what it scattered). The
+per-particle and per-node bodies are step.py's, over the same shares in the same order, so the states equal those of
+run_parallel bit for bit.
 
 A barrier needs every lane's thread running at once. When they are not (other work holds the CPUs, or fewer threads
 run than lanes), waits grow long while no lane gets on with its work: each lane ticks s.progress as it goes (every
@@ -20,6 +21,7 @@ run_parallel, whose launches wait without spinning (persistent_pass, Simulator._
 """
 import taichi as ti
 
+from .active import empty_box, node_in, volume, widen
 from .state import LANE_TASK
 from .step import grid_node
 from .transfer import check_particle, g2p_particle, p2g_particle, particle_G
@@ -100,23 +102,11 @@ def barrier(s: ti.template(), target):
 
 
 @ti.func
-def own_nodes(s: ti.template(), lane):
-    """Lane `lane`'s share of the nodes, in row-major order: k0..k1-1 (node_of)."""
-    nodes = s.n_grid ** s.dim
+def own_nodes(s: ti.template(), lane, nodes):
+    """Lane `lane`'s share of `nodes` nodes (a box's, active.volume), in row-major order: k0..k1-1 (active.node_in)."""
     share = (nodes + s.lanes - 1) // s.lanes
     k0 = ti.min(lane * share, nodes)
     return k0, ti.min(k0 + share, nodes)
-
-
-@ti.func
-def node_of(s: ti.template(), k):
-    """Node index of row-major position k (the last axis fastest, as ti.ndrange)."""
-    I = ti.Vector.zero(ti.i32, s.dim)
-    r = k
-    for d in ti.static(range(s.dim)):
-        I[s.dim - 1 - d] = r % s.n_grid
-        r //= s.n_grid
-    return I
 
 
 @ti.func
@@ -128,11 +118,26 @@ def own_particles(s: ti.template(), lane):
 
 @ti.func
 def lane_shares(s: ti.template(), item):
-    """The lane whose task item `item` opens (item % LANE_TASK == 0), its particles lo..hi-1 and its nodes k0..k1-1."""
+    """The lane whose task item `item` opens (item % LANE_TASK == 0) and its particles lo..hi-1."""
     lane = item // LANE_TASK
     lo, hi = own_particles(s, lane)
-    k0, k1 = own_nodes(s, lane)
-    return lane, lo, hi, k0, k1
+    return lane, lo, hi
+
+
+@ti.func
+def joined_box(s: ti.template(), f, lane):
+    """Box f (active.py), the lanes' boxes of their own particles (s.lane_box, published by the barrier after the
+    scatter) joined in lane order; lane 0 stores it for the reverse pass."""
+    lo, hi = empty_box(s)
+    for other in ti.static(range(s.lanes)):
+        for d in ti.static(range(s.dim)):
+            lo[d] = ti.min(lo[d], s.lane_box[other, 0, d])
+            hi[d] = ti.max(hi[d], s.lane_box[other, 1, d])
+    if lane == 0:
+        for d in ti.static(range(s.dim)):
+            s.box[f, 0, d] = lo[d]
+            s.box[f, 1, d] = hi[d]
+    return lo, hi
 
 
 @ti.kernel
@@ -142,23 +147,30 @@ def run_persistent(s: ti.template(), f0: ti.i32, f1: ti.i32):
     loop of their own as step_loops has them: the same values, 2x faster here in 2D)."""
     for item in range(s.lanes * LANE_TASK):
         if item % LANE_TASK == 0:
-            lane, lo, hi, k0, k1 = lane_shares(s, item)
+            lane, lo, hi = lane_shares(s, item)
             arrived = 0
             alive = True
             for f in range(f0, f1):
                 if alive:
+                    b0, b1 = empty_box(s)
                     for c in range(chunks(lo, hi)):  # the stress inline (a loop into s.G_step: 2x slower in 2D)
                         c0, c1 = chunk(lo, hi, c)
                         for p in range(c0, c1):
                             check_particle(s, f, p, p2g_particle(s, f, p, lane, particle_G(s, f, p)))
+                            b0, b1 = widen(s, f, p, b0, b1)
                         tick(s, lane)
+                    for d in ti.static(range(s.dim)):
+                        s.lane_box[lane, 0, d] = b0[d]
+                        s.lane_box[lane, 1, d] = b1[d]
                     arrived += s.lanes
                     alive = barrier(s, arrived)
-                if alive:
+                if alive:  # the grid loop over the step's active box (active.py)
+                    b0, b1 = joined_box(s, f, lane)
+                    k0, k1 = own_nodes(s, lane, volume(b0, b1))
                     for c in range(chunks(k0, k1)):
                         c0, c1 = chunk(k0, k1, c)
                         for k in range(c0, c1):
-                            grid_node(s, f, node_of(s, k))
+                            grid_node(s, f, node_in(b0, b1, k))
                         tick(s, lane)
                     arrived += s.lanes
                     alive = barrier(s, arrived)

@@ -157,6 +157,13 @@ class State:
             self.G_step = ti.Matrix.field(d, d, dt_, shape=N)  # G_p of the step being scattered (step.step_loops)
             self.sync = ti.field(ti.i32, shape=3)  # persistent.barrier: arrivals, the give-up flag, slow waits
             self.progress = ti.field(ti.i32, shape=(lanes, PROGRESS_LINE))  # persistent.tick: each lane's work
+            # active.py: the nodes [lo, hi) each step's particles touch (the grid loops' range), and each lane's share
+            # of the step being scattered (persistent.run_persistent); every node until a pass sets them
+            self.box = ti.field(ti.i32, shape=(T, 2, d))
+            every = np.zeros((T, 2, d), np.int32)
+            every[:, 1] = cfg.n_grid
+            self.box.from_numpy(every)
+            self.lane_box = ti.field(ti.i32, shape=(lanes, 2, d))
         self.loss = ti.field(dt_, shape=(), needs_grad=g)
         self.fault = ti.field(ti.i64, shape=2)  # least faulty f * N + p per FAULT_* kind
         self.has_colors = colors
@@ -174,11 +181,23 @@ class State:
 
     def grid_mass(self):
         """m_i^n of steps 0..T-1 in numpy, shaped (T,) + grid_shape."""
-        return unpack_mp_np(self.grid_mp.to_numpy())[1]
+        return unpack_mp_np(self._grid_mp())[1]
 
     def grid_momentum(self):
         """p_i^n of steps 0..T-1 in numpy, shaped (T,) + grid_shape + (dim,)."""
-        return unpack_mp_np(self.grid_mp.to_numpy())[0]
+        return unpack_mp_np(self._grid_mp())[0]
+
+    def _grid_mp(self):
+        """grid_mp in numpy, zero outside each step's active box (with lanes the grid loops leave an earlier pass's
+        values there, which no kernel reads: active.py)."""
+        q = self.grid_mp.to_numpy()
+        if self.lanes:
+            box = self.box.to_numpy()
+            for f in range(self.steps):
+                keep = np.zeros(self.grid_shape, bool)
+                keep[tuple(slice(lo, max(lo, hi)) for lo, hi in zip(box[f, 0], box[f, 1]))] = True
+                q[f][~keep] = 0.0
+        return q
 
     def clear_faults(self):
         self.fault.from_numpy(np.full(2, FAULT_NONE, dtype=np.int64))

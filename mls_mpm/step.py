@@ -4,10 +4,12 @@ Launch cost dominates small scenes (~50 us per parallel loop on 2 CPU threads), 
 - `substep(s, f)` (`run_parallel(s, f0, f1)` over a range): one launch per step, parallel loops (large scenes,
   GPUs);
 - `run_serial(s, f0, f1)`: one launch for a whole range of steps, every loop serial (small scenes on a CPU).
-Grid f + 1 is cleared by step f's grid loop, after nothing reads it, so each step needs no extra clear loop.
+Grid f + 1 is cleared by step f's grid loop, after nothing reads it, so each step needs no extra clear loop; with
+lanes the grid loop runs over the step's active box only (active.py) and overwrites grid f there.
 """
 import taichi as ti
 
+from .active import empty_box, merge_box, node_in, reset_box, step_box, volume, widen
 from .grid import grid_op_node
 from .state import LANE_TASK, lane_span
 from .transfer import check_particle, g2p_particle, p2g_particle, particle_G
@@ -50,24 +52,32 @@ def grid_node(s: ti.template(), f, I):
 def step_loops(s: ti.template(), f):
     """Check and P2G (eq 14-16), grid operations (eq 17 + gravity + walls), G2P (eq 18-21) of step f.
 
-    At a kernel's top level these are parallel loops. With lanes (CPU), each thread scatters its share
-    of the particles into a private grid with plain adds, which the grid loop sums: float atomics
-    (compare-and-swap on a CPU) would cost more than the whole step. There the stresses come first, in a loop of
-    their own (into s.G_step): a tight loop overlaps one particle's long chain of dependent operations (the 3D
-    polar decomposition) with the next one's, which the 4^dim-node scatter between them prevents.
+    At a kernel's top level these are parallel loops. With lanes (CPU), each thread scatters its share of the
+    particles into a private grid with plain adds, which the grid loop sums over the step's active box (active.py):
+    float atomics (compare-and-swap on a CPU) would cost more than the whole step. There the stresses come first, in
+    a loop of their own (into s.G_step): a tight loop overlaps one particle's long chain of dependent operations
+    (the 3D polar decomposition) with the next one's, which the 4^dim-node scatter between them prevents.
     """
     if ti.static(s.lanes > 0):
+        for _ in range(1):
+            reset_box(s, f)
         for p in range(s.n_particles):
             s.G_step[p] = particle_G(s, f, p)
         for item in range(s.lanes * LANE_TASK):  # one task per lane, one thread each: state.LANE_TASK
             lane, lo, hi = lane_span(s, item)
+            b0, b1 = empty_box(s)
             for p in range(lo, hi):
                 check_particle(s, f, p, p2g_particle(s, f, p, lane, s.G_step[p]))
+                b0, b1 = widen(s, f, p, b0, b1)
+            merge_box(s, f, b0, b1)
+        b0, b1 = step_box(s, f)
+        for k in range(volume(b0, b1)):  # the grid loop over the step's active box only (active.py)
+            grid_node(s, f, node_in(b0, b1, k))
     else:
         for p in range(s.n_particles):
             check_particle(s, f, p, p2g_particle(s, f, p, 0, particle_G(s, f, p)))
-    for I in ti.grouped(ti.ndrange(*s.grid_shape)):
-        grid_node(s, f, I)
+        for I in ti.grouped(ti.ndrange(*s.grid_shape)):
+            grid_node(s, f, I)
     for p in range(s.n_particles):
         g2p_particle(s, f, p)
 
