@@ -100,9 +100,9 @@ NO_TWIN = {
     "active": {
         "empty_box": "integer node bounds: nothing to differentiate",
         "widen": "integer node bounds of a particle's stencil: nothing to differentiate",
-        "reset_box": "integer node bounds: nothing to differentiate",
+        "store_box": "integer node bounds: nothing to differentiate",
+        "load_box": "integer node bounds, which the reverse pass reads too",
         "merge_box": "integer node bounds: nothing to differentiate",
-        "step_box": "integer node bounds, which the reverse pass reads too",
         "reverse_box": "integer node bounds used by the reverse pass itself",
         "volume": "an index count (the reverse pass's grid loop uses it too)",
         "node_in": "an index conversion (the reverse pass uses it too)",

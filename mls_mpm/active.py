@@ -35,12 +35,21 @@ def widen(s: ti.template(), f, p, lo, hi):
 
 
 @ti.func
-def reset_box(s: ti.template(), f):
-    """Box f empty, before the particles of step f widen it (merge_box)."""
+def store_box(field: ti.template(), i, lo, hi):
+    """field[i] = (lo, hi): a box in a (..., 2, dim) i32 field (State.box by step, State.lane_box by lane)."""
+    for d in ti.static(range(lo.n)):
+        field[i, 0, d] = lo[d]
+        field[i, 1, d] = hi[d]
+
+
+@ti.func
+def load_box(s: ti.template(), field: ti.template(), i):
+    """(lo, hi) of field[i], as store_box wrote it."""
     lo, hi = empty_box(s)
     for d in ti.static(range(s.dim)):
-        s.box[f, 0, d] = lo[d]
-        s.box[f, 1, d] = hi[d]
+        lo[d] = field[i, 0, d]
+        hi[d] = field[i, 1, d]
+    return lo, hi
 
 
 @ti.func
@@ -52,26 +61,16 @@ def merge_box(s: ti.template(), f, lo, hi):
 
 
 @ti.func
-def step_box(s: ti.template(), f):
-    """(lo, hi) of box f as the forward stored it."""
-    lo, hi = empty_box(s)
-    for d in ti.static(range(s.dim)):
-        lo[d] = s.box[f, 0, d]
-        hi[d] = s.box[f, 1, d]
-    return lo, hi
-
-
-@ti.func
 def reverse_box(s: ti.template(), f, f0, f1):
     """The nodes the reverse grid loop of step f visits in a pass from f1 down to f0: box f (f < f1), joined, where
     v_i of step f - 1 is recomputed there (one velocity slot, f - 1 >= f0), with box f - 1."""
     lo, hi = empty_box(s)
     if f < f1:
-        a, b = step_box(s, f)
+        a, b = load_box(s, s.box, f)
         lo, hi = ti.min(lo, a), ti.max(hi, b)
     if ti.static(not s.every_velocity):
         if f - 1 >= f0:
-            a, b = step_box(s, f - 1)
+            a, b = load_box(s, s.box, f - 1)
             lo, hi = ti.min(lo, a), ti.max(hi, b)
     return lo, hi
 

@@ -21,7 +21,7 @@ run_parallel, whose launches wait without spinning (persistent_pass, Simulator._
 """
 import taichi as ti
 
-from .active import empty_box, node_in, volume, widen
+from .active import empty_box, load_box, node_in, store_box, volume, widen
 from .state import LANE_TASK
 from .step import grid_node
 from .transfer import check_particle, g2p_particle, p2g_particle, particle_G
@@ -130,13 +130,10 @@ def joined_box(s: ti.template(), f, lane):
     scatter) joined in lane order; lane 0 stores it for the reverse pass."""
     lo, hi = empty_box(s)
     for other in ti.static(range(s.lanes)):
-        for d in ti.static(range(s.dim)):
-            lo[d] = ti.min(lo[d], s.lane_box[other, 0, d])
-            hi[d] = ti.max(hi[d], s.lane_box[other, 1, d])
+        a, b = load_box(s, s.lane_box, other)
+        lo, hi = ti.min(lo, a), ti.max(hi, b)
     if lane == 0:
-        for d in ti.static(range(s.dim)):
-            s.box[f, 0, d] = lo[d]
-            s.box[f, 1, d] = hi[d]
+        store_box(s.box, f, lo, hi)
     return lo, hi
 
 
@@ -159,9 +156,7 @@ def run_persistent(s: ti.template(), f0: ti.i32, f1: ti.i32):
                             check_particle(s, f, p, p2g_particle(s, f, p, lane, particle_G(s, f, p)))
                             b0, b1 = widen(s, f, p, b0, b1)
                         tick(s, lane)
-                    for d in ti.static(range(s.dim)):
-                        s.lane_box[lane, 0, d] = b0[d]
-                        s.lane_box[lane, 1, d] = b1[d]
+                    store_box(s.lane_box, lane, b0, b1)
                     arrived += s.lanes
                     alive = barrier(s, arrived)
                 if alive:  # the grid loop over the step's active box (active.py)

@@ -9,7 +9,7 @@ lanes the grid loop runs over the step's active box only (active.py) and overwri
 """
 import taichi as ti
 
-from .active import empty_box, merge_box, node_in, reset_box, step_box, volume, widen
+from .active import empty_box, load_box, merge_box, node_in, store_box, volume, widen
 from .grid import grid_op_node
 from .state import LANE_TASK, lane_span
 from .transfer import check_particle, g2p_particle, p2g_particle, particle_G
@@ -60,7 +60,8 @@ def step_loops(s: ti.template(), f):
     """
     if ti.static(s.lanes > 0):
         for _ in range(1):
-            reset_box(s, f)
+            lo, hi = empty_box(s)
+            store_box(s.box, f, lo, hi)  # box f empty, widened below by the particles of step f
         for p in range(s.n_particles):
             s.G_step[p] = particle_G(s, f, p)
         for item in range(s.lanes * LANE_TASK):  # one task per lane, one thread each: state.LANE_TASK
@@ -70,7 +71,7 @@ def step_loops(s: ti.template(), f):
                 check_particle(s, f, p, p2g_particle(s, f, p, lane, s.G_step[p]))
                 b0, b1 = widen(s, f, p, b0, b1)
             merge_box(s, f, b0, b1)
-        b0, b1 = step_box(s, f)
+        b0, b1 = load_box(s, s.box, f)
         for k in range(volume(b0, b1)):  # the grid loop over the step's active box only (active.py)
             grid_node(s, f, node_in(b0, b1, k))
     else:
