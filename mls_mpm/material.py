@@ -2,11 +2,10 @@
 
 Only the polar rotation R and the cofactor J F^{-T} differ by dimension (chosen by ti.static(F.n == 2)):
 in 2D R is the closed-form polar angle; in 3D R = U V^T of a rotation-variant SVD F = U Sigma V^T (U, V
-proper rotations, the smallest singular value carrying the sign of J, so R is a rotation also for inverted F),
-polished to round-off by Newton steps on SO(3). The starting guess: for a well-conditioned F with J > 0 (the
-common case) Higham's scaled Newton iteration for the polar factor; else a Jacobi eigen-solver on F^T F. Every
-loop has a fixed trip count, so ti.ad.Tape differentiates it (Taichi's ti.svd cannot be: its sifakis kernel
-uses bit casts).
+proper rotations, the smallest singular value carrying the sign of J, so R is a rotation also for inverted F). For a
+well-conditioned F with J > 0 (the common case) Higham's scaled Newton iteration for the polar factor, run to
+round-off; else a Jacobi eigen-solver on F^T F, polished to round-off by Newton steps on SO(3). Every loop has a
+fixed trip count, so ti.ad.Tape differentiates it (Taichi's ti.svd cannot be: its sifakis kernel uses bit casts).
 """
 import taichi as ti
 from taichi.lang import impl
@@ -64,8 +63,11 @@ JACOBI_SWEEPS = 3  # cyclic sweeps of the 3x3 Jacobi eigen-solver: a start good 
 NEWTON_STEPS = 2  # quadratic: a start within 1e-4 ends at round-off
 # The fast start (higham_rotation) is taken where J > HIGHAM_Q (|F|_F^2 / 3)^(3/2), i.e. J over the volume of the
 # cube with F's mean squared singular value: 1 for a scaled rotation, 0 for a singular F. Above it HIGHAM_STEPS
-# iterations and one Newton step reach float64 round-off (measured: <= 1e-14 on 500k random F with q > 1e-3;
-# the start's error shrinks quadratically once it is below ~0.1, the scaling gets it there in a few steps).
+# iterations reach float64 round-off (measured: <= 1e-14 on 500k random F with q > 1e-3; the error shrinks
+# quadratically once it is below ~0.1, the scaling gets it there in a few steps), and so does their derivative: the
+# iteration's dX/dF, which ti.ad.Tape takes, is the polar rotation's dR/dF to 6e-14 relative at the step counts below
+# (numpy, forward-mode, 20k random F with q > 0.01). No Newton step follows (one cost 38 ns of the 108 ns a float32
+# R took, for the same accuracy: BENCHMARKS.md, "The 3D polar rotation without its Newton step").
 HIGHAM_Q = 0.01
 HIGHAM_STEPS = 6
 # Fewer steps where F is nearer a scaled rotation (the common case, moderate strain), by the same q: (q above,
@@ -75,11 +77,10 @@ HIGHAM_STEPS = 6
 # benchmarks/polar_accuracy.py measures the Taichi code's.
 HIGHAM_TIERS = ((0.9, 4), (0.3, 5))
 HIGHAM_MIN_STEPS = min(n for _, n in HIGHAM_TIERS)
-# In float32 the start needs float32 round-off only (~1e-7): one Higham step fewer in every band. Measured (numpy,
-# 400k random F, the iteration and its Newton step in float32): the largest |R - U V^T| after HIGHAM_TIERS' counts
-# minus one is 1.5e-7, 1.5e-7 and 4.6e-7 by band, as with the float64 counts; two fewer leave 7e-4, which the
-# Newton step (it corrects a rotation, not X's symmetric part) keeps (polar_accuracy.py measures the Taichi code's,
-# tests/test_polar_f32.py checks it).
+# In float32 R needs float32 round-off only (~1e-7): one Higham step fewer in every band. Measured (the Taichi code
+# in float32, benchmarks/polar_accuracy.py, 200k random F): the largest |R - U V^T| after HIGHAM_TIERS' counts minus
+# one is 1.6e-7, 1.7e-7 and 3.1e-7 by band, as with the float64 counts; two fewer leave 7e-4 (numpy; a Newton step on
+# SO(3) after them would not help: it corrects a rotation, not X's symmetric part). tests/test_polar_f32.py checks it.
 HIGHAM_F32_FEWER = 1
 
 
@@ -243,13 +244,13 @@ def polar_rotation(F):
     r = |(a, b)|: the same R without trigonometry. Where r vanishes the angle is undefined and, like
     atan2(0, 0) = 0, R = I is taken.
 
-    3D: a start R (higham_rotation where F is well-conditioned with J > 0, see HIGHAM_Q, else U V^T of the
-    rotation-variant SVD, svd_rotation), then Newton steps R <- R cay(omega) (newton_rotation: one after Higham,
-    NEWTON_STEPS after the SVD) on skew(R^T F) = 0: with S' = R^T F, (tr(S) I - S) omega = axial(S' - S'^T), S =
-    sym(S') (rotation_solve). Each step zeroes the first-order error, so the result is at round-off and, under
-    ti.ad.Tape, its derivative is the exact dR = R [omega]_x (polar_rotation's closed form in
-    adjoint.material.stress_reverse) whatever the derivative of the starting guess. Where tr(S) I - S is singular R
-    is not unique; the SVD's R is kept.
+    3D: where F is well-conditioned with J > 0 (see HIGHAM_Q), Higham's iteration (higham_rotation) to round-off,
+    value and derivative (see HIGHAM_STEPS). Else U V^T of the rotation-variant SVD (svd_rotation), then
+    NEWTON_STEPS Newton steps R <- R cay(omega) (newton_rotation) on skew(R^T F) = 0: with S' = R^T F,
+    (tr(S) I - S) omega = axial(S' - S'^T), S = sym(S') (rotation_solve). Each step zeroes the first-order error,
+    so the result is at round-off and, under ti.ad.Tape, its derivative is the exact dR = R [omega]_x
+    (polar_rotation's closed form in adjoint.material.stress_reverse) whatever the derivative of the SVD. Where
+    tr(S) I - S is singular R is not unique; the SVD's R is kept.
     """
     if ti.static(F.n == 2):
         a = F[0, 0] + F[1, 1]
@@ -267,7 +268,7 @@ def polar_rotation(F):
         n2 = (F * F).sum() / 3.0
         R = ti.Matrix.identity(float, 3)
         if J > 0.0 and J * J > HIGHAM_Q * HIGHAM_Q * n2 * n2 * n2:  # well-conditioned, not inverted: see HIGHAM_Q
-            R = newton_rotation(F, higham_rotation(F, higham_steps(J / (n2 * ti.sqrt(n2)))))
+            R = higham_rotation(F, higham_steps(J / (n2 * ti.sqrt(n2))))
         else:
             R = svd_rotation(F)
             for _ in ti.static(range(NEWTON_STEPS)):

@@ -13,9 +13,8 @@ from mls_mpm import runtime
 from mls_mpm.bench.polar import PolarKernel, q_bands, q_measure, samples
 
 COUNT = 20_000
-# float32 round-off of R (~6e-8 an entry) times the few operations of the last Newton step; measured: <= 2.5e-7 in the
-# Higham bands. One Higham step fewer still would leave ~7e-4 (the start's error, which the Newton step on SO(3)
-# does not remove: it corrects a rotation, not X's symmetric part).
+# float32 round-off of R (~6e-8 an entry) times the few operations of the last Higham step; measured: <= 3.1e-7 in
+# the Higham bands (benchmarks/polar_accuracy.py). One Higham step fewer still would leave ~7e-4.
 F32_TOL = 5e-6
 # the Jacobi SVD band: F there is nearly singular or inverted, and R's sensitivity grows as 1 / (s_i + s_j)
 SVD_TOL = 1e-3
