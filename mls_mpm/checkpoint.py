@@ -106,8 +106,8 @@ def check_array(path, arrays, name, kind, shape, what):
 
 
 def check_value(path, where, value, kind, what, length=None):
-    """A meta data value of kind int, float, bool, str, floats (a list of numbers; `length` of them if given)
-    or table (a dict); else CheckpointError naming the file and the entry."""
+    """A meta data value of kind int, float, bool, str, floats (a list of numbers; `length` of them if given),
+    ints (a list of integers >= 0) or table (a dict); else CheckpointError naming the file and the entry."""
     def number(v):
         return isinstance(v, (int, float)) and not isinstance(v, bool)
 
@@ -117,10 +117,13 @@ def check_value(path, where, value, kind, what, length=None):
           "str": lambda v: isinstance(v, str),
           "floats": lambda v: isinstance(v, list) and all(number(x) for x in v)
                               and (length is None or len(v) == length),
+          "ints": lambda v: isinstance(v, list) and all(isinstance(x, int) and not isinstance(x, bool) and x >= 0
+                                                        for x in v),
           "table": lambda v: isinstance(v, dict)}[kind](value)
     if not ok:
         expected = {"int": "an integer >= 0", "float": "a number", "bool": "true or false", "str": "a string",
                     "floats": "a list of " + (f"{length} " if length is not None else "") + "numbers",
+                    "ints": "a list of integers >= 0",
                     "table": "a table"}[kind]
         found = "nothing" if value is None else json.dumps(value, default=_plain)[:40]
         raise CheckpointError(f"{path}: {where} is {found}: expected {expected}; not a {what} of this scene; "

@@ -51,6 +51,7 @@ class OptimizeResult:
     grad_norms: list = field(default_factory=list)
     positions: np.ndarray = None  # final particle positions of the `positions` optimizer
     loss_start: float = None  # the loss of the starting controls that the run is measured by (schedule.staged)
+    restarted: list = field(default_factory=list)  # stages (from 1) whose controls schedule.staged set aside
 
 
 class Progress:

@@ -224,6 +224,8 @@ def _finish(scene, prob, sim, done, starts, out, wall, emit):
         "iterations": sum(r.iterations for r in done),
         "converged": all(r.converged for r in done),
         "stop_reason": [r.reason for r in done],
+        # per round, the stages (from 1) whose controls raised the measured loss and were set aside (schedule._kept)
+        "stages_restarted": [r.restarted for r in done],
         "wall_seconds": wall,
         "particles": len(prob.x0),
         "dim": cfg.dim,
@@ -308,11 +310,16 @@ class _Throttled:
             self.held = None
 
 
+# checkpoint entries added after checkpoints were first written, and their value in a checkpoint without them (an
+# older version's run resumed by this one): no stage set aside
+LATER_KEYS = {"restarted": [], "stage_restarts": []}
+
+
 def _save_checkpoint(path, scene, schedule, done, starts, opt_state, elapsed):
     """schedule: the one the run steps in (Simulator.schedule), which a resume under `auto` keeps (_resumed_config)."""
     meta = {"fingerprint": fingerprint(scene), "elapsed": elapsed, "schedule": schedule,
             "rounds": [{"losses": r.losses, "iterations": r.iterations, "converged": r.converged,
-                        "reason": r.reason, "grad_norms": r.grad_norms} for r in done]}
+                        "reason": r.reason, "grad_norms": r.grad_norms, "restarted": r.restarted} for r in done]}
     arrays = {f"start_{k}": np.stack([s[k] for s in starts]) for k in STATE_KEYS}
     for i, r in enumerate(done):
         arrays[f"round_controls_{i}"] = r.controls
@@ -345,15 +352,15 @@ def _load_checkpoint(path, scene, prob):
     for i, r in enumerate(rounds):
         check_value(path, f"rounds[{i}]", r, "table", what)
         for key, kind in (("losses", "floats"), ("iterations", "int"), ("converged", "bool"), ("reason", "str"),
-                          ("grad_norms", "floats")):
-            check_value(path, f"rounds[{i}].{key}", r.get(key), kind, what)
+                          ("grad_norms", "floats"), ("restarted", "ints")):
+            check_value(path, f"rounds[{i}].{key}", r.get(key, LATER_KEYS.get(key)), kind, what)
         _require_losses(path, f"rounds[{i}].losses", r["losses"])
         positions = None
         if opt.method == "positions":
             positions = check_array(path, arrays, f"round_positions_{i}", "f", (N, d), what)
         done.append(OptimizeResult(check_array(path, arrays, f"round_controls_{i}", "f", controls, what),
                                    r["losses"], r["iterations"], r["converged"], r["reason"], r["grad_norms"],
-                                   positions))
+                                   positions, restarted=r.get("restarted", [])))
     n_starts = min(len(done) + 1, opt.rounds)
     for k in STATE_KEYS:
         check_array(path, arrays, f"start_{k}", "f", (n_starts, N, *state_shapes(d)[k]), what)
@@ -371,7 +378,7 @@ def _load_checkpoint(path, scene, prob):
             elif kind == "per_control":
                 opt_state[key] = check_value(path, f"opt.{key}", st.get(key), "floats", what, length=K)
             else:
-                opt_state[key] = check_value(path, f"opt.{key}", st.get(key), kind, what)
+                opt_state[key] = check_value(path, f"opt.{key}", st.get(key, LATER_KEYS.get(key)), kind, what)
         _require_losses(path, "opt.losses", opt_state["losses"])
         pairs = [opt_state[k] for k, kind in kinds.items() if kind == "pairs"]
         if pairs and (len({len(p) for p in pairs}) != 1 or len(pairs[0]) > PAIRS_MAX):

@@ -11,12 +11,13 @@ The budget (`optimize.max_seconds`, 0: none) is a deadline for the whole run, co
 kernels are compiled first (one forward and backward pass), then a stage that starts with R seconds left gets
 R * its share / the shares left; one that finishes early leaves its time to the next. A stage whose controls
 leave the measured loss (every grid's, the last stage's) above that of the run's starting controls hands the next
-stage those starting controls instead (`_kept`). An optimizer past its deadline stops after its current unit of
+stage those starting controls instead (`_kept`), and the result lists it in `restarted` (summary.json:
+`stages_restarted`). An optimizer past its deadline stops after its current unit of
 work, like an interrupt, and its controls (the best so far: every optimizer here only accepts decreases, except
 adam) are the result, with the stop reason "time budget".
 
 The checkpoint of a staged run is the inner optimizer's state plus STAGE_STATE: which stage it is in, and the
-losses, gradient norms and iterations of the stages before. A stage that had finished when the run was
+losses, gradient norms and iterations of the stages before, and which of them were set aside. A stage that had finished when the run was
 interrupted resumes to its own end at once (its optimizer state says it stopped), so a resumed run follows the
 same stages bit for bit.
 """
@@ -27,7 +28,7 @@ from dataclasses import dataclass, replace
 from .optimize import OptimizeResult
 
 STAGE_STATE = {"stage": "int", "stage_losses": "floats", "stage_grad_norms": "floats", "stage_iterations": "int",
-               "loss_start": "float"}
+               "loss_start": "float", "stage_restarts": "ints"}
 BUDGET_REASON = "time budget"
 
 
@@ -50,7 +51,8 @@ def staged(method, stages, max_seconds=0.0, started=None, clock=time.perf_counte
     started: the clock reading the budget counts from (default: now); a resumed run passes now minus the time
     it had already spent. The returned OptimizeResult concatenates the stages' losses (each stage's list starts
     with its own loss of the controls it started from) and adds their iterations; its `loss_start` is the last
-    stage's loss (every grid's) of the starting controls, the loss the run is measured by.
+    stage's loss (every grid's) of the starting controls, the loss the run is measured by; its `restarted` the
+    stages (from 1) whose controls were set aside for the starting ones (_kept).
     """
     t0 = clock() if started is None else started
     deadline = t0 + max_seconds if max_seconds > 0 else math.inf
@@ -59,10 +61,12 @@ def staged(method, stages, max_seconds=0.0, started=None, clock=time.perf_counte
         counts = stage_iterations(settings.iterations, [s.share for s in stages])
         multi = len(stages) > 1
         first, losses, grad_norms, iterations, loss_start, inner = 0, [], [], 0, None, resume
+        restarted = []
         if resume is not None and multi:
             inner = {k: v for k, v in resume.items() if k not in STAGE_STATE}
             first, iterations, loss_start = int(resume["stage"]), int(resume["stage_iterations"]), resume["loss_start"]
             losses, grad_norms = list(resume["stage_losses"]), list(resume["stage_grad_norms"])
+            restarted = [int(k) for k in resume["stage_restarts"]]
         if multi and loss_start is None:
             sim.set_active_grids(stages[-1].grids)
             loss_start = sim.forward(controls)
@@ -86,7 +90,7 @@ def staged(method, stages, max_seconds=0.0, started=None, clock=time.perf_counte
                     return
                 if multi:
                     state = {**state, "stage": k, "stage_losses": losses, "stage_grad_norms": grad_norms,
-                             "stage_iterations": iterations, "loss_start": loss_start}
+                             "stage_iterations": iterations, "loss_start": loss_start, "stage_restarts": restarted}
                 on_checkpoint(state)
 
             def stop(stage_deadline=stage_deadline):
@@ -96,7 +100,7 @@ def staged(method, stages, max_seconds=0.0, started=None, clock=time.perf_counte
                          emit=emit, resume=inner if k == first else None)
             inner = None
             if res.reason == "interrupted" and should_stop and should_stop():
-                return _result(res, losses, grad_norms, iterations, loss_start)
+                return _result(res, losses, grad_norms, iterations, loss_start, restarted)
             if res.reason == "interrupted":  # past the stage's deadline; the next stage gets what is left
                 res.reason, res.converged = BUDGET_REASON, False
                 out_of_time = clock() >= deadline
@@ -105,39 +109,41 @@ def staged(method, stages, max_seconds=0.0, started=None, clock=time.perf_counte
                     # (a list of one, as a stage of no iterations), measured like loss_start, not stage k's
                     losses, grad_norms = losses + list(res.losses), grad_norms + list(res.grad_norms)
                     iterations += res.iterations
-                    kept, measured = _kept(sim, stages, k, res.controls, controls, loss_start, emit)
+                    kept, measured, aside = _kept(sim, stages, k, res.controls, controls, loss_start, emit)
+                    restarted = restarted + [k + 1] * aside
                     res = OptimizeResult(kept, [measured], 0, False, BUDGET_REASON)
                 if k == len(stages) - 1 or out_of_time:
                     sim.set_active_grids(None)
-                    return _result(res, losses, grad_norms, iterations, loss_start)
+                    return _result(res, losses, grad_norms, iterations, loss_start, restarted)
             c = res.controls
             if k < len(stages) - 1:
                 losses, grad_norms = losses + list(res.losses), grad_norms + list(res.grad_norms)
                 iterations += res.iterations
-                c = _kept(sim, stages, k, c, controls, loss_start, emit)[0]
+                c, _, aside = _kept(sim, stages, k, c, controls, loss_start, emit)
+                restarted = restarted + [k + 1] * aside
         sim.set_active_grids(None)
-        return _result(res, losses, grad_norms, iterations, loss_start)
+        return _result(res, losses, grad_norms, iterations, loss_start, restarted)
 
     return run
 
 
 def _kept(sim, stages, k, c, start, loss_start, emit):
-    """(controls, their loss the run is measured by: the last stage's) that stage k + 1 starts from, or the run ends
-    with when out of time: stage k's controls c, unless they leave that loss above loss_start, that of the run's
-    starting controls: then those and loss_start (a coarse loss can be lowered by breaking the body into blobs that
-    the fine loss then cannot undo; the later stages would start worse off than from nothing). Deterministic, so a
-    resumed run decides the same."""
+    """(controls, their loss the run is measured by: the last stage's, whether c was set aside) that stage k + 1
+    starts from, or the run ends with when out of time: stage k's controls c, unless they leave that loss above
+    loss_start, that of the run's starting controls: then those and loss_start (a coarse loss can be lowered by
+    breaking the body into blobs that the fine loss then cannot undo; the later stages would start worse off than
+    from nothing). Deterministic, so a resumed run decides the same."""
     sim.set_active_grids(stages[-1].grids)
     measured = sim.forward(c)
     if measured <= loss_start:
-        return c, measured
+        return c, measured, False
     emit(f"stage {k + 1}/{len(stages)} left the loss of grids {list(stages[-1].grids)} at {measured:.6e}, above "
          f"its {loss_start:.6e} at the start: going on from the starting controls instead")
-    return start, loss_start
+    return start, loss_start, True
 
 
-def _result(res, losses, grad_norms, iterations, loss_start):
-    """The last stage's result with the earlier stages' losses, gradient norms and iterations before its own."""
+def _result(res, losses, grad_norms, iterations, loss_start, restarted):
+    """The last stage's result with the earlier stages' losses, gradient norms, iterations and set-aside stages."""
     return OptimizeResult(res.controls, losses + list(res.losses), iterations + res.iterations, res.converged,
                           res.reason, grad_norms + list(res.grad_norms), res.positions,
-                          res.losses[0] if loss_start is None else loss_start)
+                          res.losses[0] if loss_start is None else loss_start, list(restarted))

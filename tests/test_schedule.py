@@ -19,7 +19,7 @@ import taichi as ti
 import mls_mpm
 from conftest import StopAt, blob, random_controls, rel_err, scene_config
 from mls_mpm import SimConfig, problem, runtime
-from mls_mpm.checkpoint import load_npz
+from mls_mpm.checkpoint import load_npz, save_npz
 from mls_mpm.optimize import OptimizeResult
 from mls_mpm.run import run_scene
 from mls_mpm.scene import SceneError, load_scene
@@ -183,6 +183,7 @@ def test_staged_concatenates_the_stages():
     assert res.iterations == 6 and res.controls == -6.0 and res.grad_norms == [1.0] * 6
     assert res.loss_start == 20.0  # the last stage's loss of the starting controls
     assert res.reason == "iteration budget"
+    assert res.restarted == []  # stage 1 lowered both grids' loss: kept
     assert sim.active == (16, 32)  # every grid again afterwards
     assert [line.split(":")[0] for line in lines] == ["stage 1/2", "stage 2/2"]
 
@@ -206,8 +207,21 @@ def test_a_stage_that_raises_the_measured_loss_hands_on_the_starting_controls():
     assert res.losses[:3] == [10.0, 9.0, 8.0]
     assert res.losses[3] == 20.0 == res.loss_start  # stage 2 from the starting controls
     assert res.controls == -4.0  # its 4 iterations from 0
+    assert res.restarted == [1]  # and the result says so (summary.json's stages_restarted)
     assert any(line.startswith("stage 1/2 left the loss of grids [16, 32] at 2.400000e+01, above its 2.000000e+01")
                for line in lines), lines
+
+
+def test_a_resumed_run_keeps_the_stages_set_aside_before_it():
+    """Resumed in stage 2 of 2 from a checkpoint whose stage 1 was set aside (STAGE_STATE's stage_restarts = [1]):
+    the result still lists stage 1, and stage 2's own decision adds nothing (the last stage has none)."""
+    clock, starts, lines = Clock(), [], []
+    run = staged(fake_method(clock, 1.0, starts), [Stage((16,), 1.0), Stage((16, 32), 2.0)], clock=clock)
+    resume = {"controls": 0.0, "stage": 1, "stage_losses": [10.0, 9.0, 8.0], "stage_grad_norms": [1.0, 1.0],
+              "stage_iterations": 2, "loss_start": 20.0, "stage_restarts": [1]}
+    res = run(TearingSim(), 0.0, settings(6), emit=lines.append, resume=resume)
+    assert [n for _, n in starts] == [4]  # stage 2 alone
+    assert res.restarted == [1] and res.iterations == 6 and res.losses[:3] == [10.0, 9.0, 8.0]
 
 
 def test_out_of_time_in_a_stage_that_raised_the_measured_loss_ends_with_the_starting_controls():
@@ -218,7 +232,7 @@ def test_out_of_time_in_a_stage_that_raised_the_measured_loss_ends_with_the_star
                  clock=clock)
     res = run(TearingSim(), 0.0, settings(10), emit=lines.append)
     assert res.controls == 0.0 and res.losses[-1] == 20.0 == res.loss_start
-    assert res.reason == BUDGET_REASON
+    assert res.reason == BUDGET_REASON and res.restarted == [1]
 
 
 def test_one_stage_is_the_plain_optimizer():
@@ -371,8 +385,26 @@ def test_an_interrupted_staged_run_resumes_bit_for_bit(whole, tmp_path, n):
     _, again = load_npz(tmp_path / "result.npz", "result")
     assert np.array_equal(again["controls"], arrays["controls"])
     assert again["losses"].tolist() == arrays["losses"].tolist()
-    for key in ("loss_initial", "loss_final", "iou", "iterations", "stop_reason", "mass_error"):
+    for key in ("loss_initial", "loss_final", "iou", "iterations", "stop_reason", "stages_restarted", "mass_error"):
         assert resumed[key] == summary[key], key
+
+
+def test_a_checkpoint_without_the_set_aside_stages_resumes(whole, tmp_path):
+    """A checkpoint of an earlier version, which had no `stage_restarts` (STAGE_STATE) or per-round `restarted`:
+    resumed as one in which no stage was set aside, to the uninterrupted run's result (interrupted after stage 1's
+    two iterations, so that the checkpoint holds the stage state)."""
+    scene, summary, arrays = whole
+    run(scene, tmp_path, should_stop=StopAt(2))
+    path = tmp_path / "checkpoint.npz"
+    meta, saved = load_npz(path, "checkpoint")
+    assert meta["opt"].pop("stage_restarts") == []
+    for r in meta["rounds"]:
+        r.pop("restarted")
+    save_npz(path, meta, saved)
+    resumed = run(scene, tmp_path, resume=True)
+    assert resumed["stages_restarted"] == summary["stages_restarted"] == [[]]
+    _, again = load_npz(tmp_path / "result.npz", "result")
+    assert np.array_equal(again["controls"], arrays["controls"])
 
 
 def test_a_run_past_its_budget_writes_its_result(tmp_path):
