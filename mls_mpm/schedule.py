@@ -12,14 +12,14 @@ kernels are compiled first (one forward and backward pass), then a stage that st
 R * its share / the shares left; one that finishes early leaves its time to the next. A stage whose controls
 leave the measured loss (every grid's, the last stage's) above that of the run's starting controls hands the next
 stage those starting controls instead (`_kept`), and the result lists it in `restarted` (summary.json:
-`stages_restarted`). An optimizer past its deadline stops after its current unit of
-work, like an interrupt, and its controls (the best so far: every optimizer here only accepts decreases, except
-adam) are the result, with the stop reason "time budget".
+`stages_restarted`). An optimizer past its deadline stops after its current unit of work, like an interrupt, and
+its controls (the best so far: every optimizer here only accepts decreases, except adam) are the result, with the
+stop reason "time budget".
 
 The checkpoint of a staged run is the inner optimizer's state plus STAGE_STATE: which stage it is in, and the
-losses, gradient norms and iterations of the stages before, and which of them were set aside. A stage that had finished when the run was
-interrupted resumes to its own end at once (its optimizer state says it stopped), so a resumed run follows the
-same stages bit for bit.
+losses, gradient norms and iterations of the stages before, and which of them were set aside. A stage that had
+finished when the run was interrupted resumes to its own end at once (its optimizer state says it stopped), so a
+resumed run follows the same stages bit for bit.
 """
 import math
 import time
