@@ -17,6 +17,7 @@ from mls_mpm.state import LANE_TASK, PROGRESS_LINE
 CASES = {2: dict(dtype="f64", n_grid=32, particles=1000, steps=20),
          3: dict(dim=3, dtype="f64", n_grid=16, particles=1500, steps=6)}
 LAUNCH_PER_STEP = 10 ** 9  # Simulator._persistent_wait: every pass with run_parallel
+TRIES = 5  # test_a_lane_that_works_longer_is_waited_for: tries before it skips (or fails)
 
 
 def problem(dim, threads):
@@ -182,27 +183,33 @@ def test_a_lane_that_works_longer_is_waited_for():
     up (the 3D backward gave up, with nothing else running, when a lane's longer share of the work counted as
     absence). Without ticks the same waits count as slow.
 
-    Needs both lanes on a CPU at once, which other work (pytest-xdist's other worker) can prevent: each try first
-    times both lanes working alike. A try that gave up is repeated, up to 5 times; if all gave up, the test fails where
-    any control took about the time of one lane alone (the CPUs were free, yet the lane was given up for), else
-    skips. (It failed at the first such try before: once in a full suite on 2 cores, 2026-12-07, load between the
-    control and the try.)"""
+    Needs both lanes on a CPU at once, which other work (pytest-xdist's other worker) can prevent. Each try is
+    bracketed by two controls, both lanes working alike without a barrier's verdict: a try that gave up counts as one
+    on free CPUs when both controls took about the time of one lane alone. A try that gave up is repeated, up to
+    TRIES times; if all gave up, the test fails where most of them were on free CPUs (a lane given up for because it
+    worked, the bug, gives up on every try, loaded or not), else skips. Load that comes and goes between two controls
+    can make a try look free: one such try (twice, with a single control before each try: in a full suite on 2
+    cores, 2026-12-07, and in CI on a fresh clone at 4075461) must not fail the test."""
     runtime.ensure(SimConfig(dtype="f64", arch="cpu", threads=2))  # two threads: both lanes at once
     lane_rounds(ticks=True, both=True)  # compiles
     lane_rounds(ticks=True)
     alone = min(lane_rounds(ticks=True, meet=False)[1] for _ in range(3))  # lane 1's work alone, no barrier
-    free_tries = 0  # tries that gave up although the control just before found the CPUs free
-    for _ in range(5):
+
+    def free():
         control, took = lane_rounds(ticks=True, both=True)
+        return control == [20, 0, 0] and took < 1.5 * alone
+
+    free_tries = 0  # tries that gave up although the controls around them found the CPUs free
+    for _ in range(TRIES):
+        before = free()
         sync = lane_rounds(ticks=True)[0]
         if sync[1] == 0:
             assert sync[0] == 20
             break
-        free_tries += control == [20, 0, 0] and took < 1.5 * alone
+        free_tries += before and free()
     else:
-        # a lane given up for because it worked (the bug) gives up on every try; load that comes between a control
-        # and its try (pytest-xdist's other worker starting to compile) only on some
-        assert free_tries == 0, f"a lane that works and ticks was given up for ({sync}) on free CPUs, every try"
+        assert 2 * free_tries <= TRIES, (f"a lane that works and ticks was given up for ({sync}) on free CPUs in "
+                                         f"{free_tries} of {TRIES} tries")
         pytest.skip(f"every try gave up ({sync}): other work held the CPUs")
     silent = lane_rounds(ticks=False)[0]  # the same waits without ticks: slow (8 of them give up, on free CPUs)
     assert silent[2] >= 1, silent
