@@ -1,10 +1,11 @@
-"""Accuracy and speed of the 3D polar rotation of the stress (mls_mpm.material.polar_rotation), by starting guess.
+"""Accuracy and speed of the 3D polar rotation of the stress (mls_mpm.material.polar_rotation), by method.
 
     .venv/bin/python benchmarks/polar_accuracy.py [--count 400000] [--threads 2]
 
 Random F = U diag(s) V^T (U, V uniform rotations, log s uniform in [-2.5, 2.5] times a uniform scale in [0, 1], a
-tenth of them with the smallest negated: inverted), grouped by q = J / (|F|_F^2 / 3)^(3/2) into the bands of polar_rotation's
-starting guesses (HIGHAM_TIERS: fewer Higham steps nearer a scaled rotation; HIGHAM_Q: Higham or the Jacobi SVD).
+tenth of them with the smallest negated: inverted), grouped by q = J / (|F|_F^2 / 3)^(3/2) into the bands of
+polar_rotation's methods (HIGHAM_TIERS: fewer Higham steps nearer a scaled rotation; HIGHAM_Q: Higham or the Jacobi
+SVD).
 For each band: how many F, the largest |R - U V^T| (the sampled rotations; where F is nearly singular R is that
 ill-conditioned) and the largest |R^T F - (R^T F)^T| / |F| in f64, the largest |R - U V^T| in f32 (one Higham step
 fewer: HIGHAM_F32_FEWER), and ns per F of a Taichi kernel computing R for that band's F alone (f64 and f32, minimum

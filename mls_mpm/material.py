@@ -61,7 +61,7 @@ POLAR_EPS = 1e-10
 
 JACOBI_SWEEPS = 3  # cyclic sweeps of the 3x3 Jacobi eigen-solver: a start good to ~1e-8 or better
 NEWTON_STEPS = 2  # quadratic: a start within 1e-4 ends at round-off
-# The fast start (higham_rotation) is taken where J > HIGHAM_Q (|F|_F^2 / 3)^(3/2), i.e. J over the volume of the
+# Higham's iteration (higham_rotation) is taken where J > HIGHAM_Q (|F|_F^2 / 3)^(3/2), i.e. J over the volume of the
 # cube with F's mean squared singular value: 1 for a scaled rotation, 0 for a singular F. Above it HIGHAM_STEPS
 # iterations reach float64 round-off (measured: <= 1e-14 on 500k random F with q > 1e-3; the error shrinks
 # quadratically once it is below ~0.1, the scaling gets it there in a few steps), and so does their derivative: the
@@ -72,7 +72,7 @@ HIGHAM_Q = 0.01
 HIGHAM_STEPS = 6
 # Fewer steps where F is nearer a scaled rotation (the common case, moderate strain), by the same q: (q above,
 # steps), tried in order. The last step of each count is unscaled (z = 1: the iterate's det is 1 to ~1e-8 by then).
-# Measured on 400k random F (numpy, f64), the largest |X - R| of the start: q > 0.85 after 4 steps, q > 0.2 after 5,
+# Measured on 400k random F (numpy, f64), the largest |X - R| of the iteration: q > 0.85 after 4 steps, q > 0.2 after 5,
 # q > 0.01 after 6, each 1.4e-15 (and 5.2e-15 at q > 0.8 after 4 steps, 1.4e-15 at q > 0.01 after 6 scaled steps);
 # benchmarks/polar_accuracy.py measures the Taichi code's.
 HIGHAM_TIERS = ((0.9, 4), (0.3, 5))
@@ -227,7 +227,7 @@ def higham_step(X, scaled):
 
 @ti.func
 def higham_steps(q):
-    """Higham steps for a start at round-off, given q = J / (|F|_F^2 / 3)^(3/2) > HIGHAM_Q (HIGHAM_TIERS; one
+    """Higham steps for R at round-off, given q = J / (|F|_F^2 / 3)^(3/2) > HIGHAM_Q (HIGHAM_TIERS; one
     fewer in float32, higham_fewer)."""
     fewer = ti.static(higham_fewer())
     n = HIGHAM_STEPS - fewer

@@ -3,9 +3,10 @@
 Forward: the polar rotation is a proper rotation with R^T F symmetric, also for inverted F. Reverse: against central
 finite differences of stress (every case, repeated singular values included), against ti.ad.Tape through stress (cases
 without repeated singular values: where F is inverted or ill-conditioned the Tape also differentiates the Jacobi
-starting guess, whose derivative the Newton steps suppress only to ~1e-8; both of polar_rotation's starting guesses
-are exercised, with F on either side of HIGHAM_Q), against linear elasticity at F = I, and at the guarded singular set
-of tr(S) I - S. One kernel of each kind is compiled for all cases (the Tape one takes about a minute).
+starting guess, whose derivative the Newton steps suppress only to ~1e-8; both of polar_rotation's methods, Higham's
+iteration and the Jacobi SVD, are exercised, with F on either side of HIGHAM_Q), against linear elasticity at F = I,
+and at the guarded singular set of tr(S) I - S. One kernel of each kind is compiled for all cases (the Tape one takes
+about a minute).
 """
 import numpy as np
 import pytest
@@ -52,7 +53,7 @@ SMOOTH = {  # no repeated singular value
     "inverted": R1 @ np.diag([1.2, 0.9, -0.5]) @ R0,
     "nearly singular (J = 1e-9)": R0 @ np.diag([1.3, 0.7, 1e-9]) @ R1,
     "1e-3 from the singular set of M": R0 @ np.diag([1.5, 0.8, -0.799]) @ R1,
-    # either side of the line between polar_rotation's two starting guesses (Higham's iteration / the SVD)
+    # either side of the line between polar_rotation's two methods (Higham's iteration / the SVD and Newton steps)
     "just above HIGHAM_Q": R0 @ np.diag([at_q(1.02 * HIGHAM_Q), 0.9, 1.2]) @ R1,
     "just below HIGHAM_Q": R0 @ np.diag([at_q(0.98 * HIGHAM_Q), 0.9, 1.2]) @ R1,
     # and either side of each line between Higham step counts (HIGHAM_TIERS)

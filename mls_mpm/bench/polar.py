@@ -20,7 +20,7 @@ def random_rotations(rng, n):
 def samples(n, seed=0, spread=2.5):
     """F = U diag(s) V^T (n, 3, 3) with log s uniform in [-spread, spread] times a uniform scale in [0, 1], a tenth of
     them inverted (the smallest singular value negated: then R = U V^T, the rotation-variant SVD's); returns F, its
-    R = U V^T and q = J / (|F|_F^2 / 3)^(3/2), the measure that picks polar_rotation's starting guess."""
+    R = U V^T and q = J / (|F|_F^2 / 3)^(3/2), the measure that picks polar_rotation's method."""
     rng = np.random.default_rng(seed)
     U, V = random_rotations(rng, n), random_rotations(rng, n)
     s = np.exp(rng.uniform(-spread, spread, (n, 3)) * rng.uniform(0, 1, (n, 1)))
@@ -31,7 +31,7 @@ def samples(n, seed=0, spread=2.5):
 
 
 def q_bands():
-    """The bands of q that pick polar_rotation's starting guess, highest first, as (low, high, float64 Higham steps):
+    """The bands of q that pick polar_rotation's method, highest first, as (low, high, float64 Higham steps):
     the Higham tiers (HIGHAM_TIERS), Higham's remaining band above HIGHAM_Q (HIGHAM_STEPS), and last the Jacobi
     SVD's band (steps None). A band holds low < q <= high."""
     out, hi = [], np.inf
