@@ -351,16 +351,16 @@ def _load_checkpoint(path, scene, prob):
     done = []
     for i, r in enumerate(rounds):
         check_value(path, f"rounds[{i}]", r, "table", what)
-        for key, kind in (("losses", "floats"), ("iterations", "int"), ("converged", "bool"), ("reason", "str"),
-                          ("grad_norms", "floats"), ("restarted", "ints")):
-            check_value(path, f"rounds[{i}].{key}", r.get(key, LATER_KEYS.get(key)), kind, what)
-        _require_losses(path, f"rounds[{i}].losses", r["losses"])
+        v = {key: check_value(path, f"rounds[{i}].{key}", r.get(key, LATER_KEYS.get(key)), kind, what)
+             for key, kind in (("losses", "floats"), ("iterations", "int"), ("converged", "bool"), ("reason", "str"),
+                               ("grad_norms", "floats"), ("restarted", "ints"))}
+        _require_losses(path, f"rounds[{i}].losses", v["losses"])
         positions = None
         if opt.method == "positions":
             positions = check_array(path, arrays, f"round_positions_{i}", "f", (N, d), what)
         done.append(OptimizeResult(check_array(path, arrays, f"round_controls_{i}", "f", controls, what),
-                                   r["losses"], r["iterations"], r["converged"], r["reason"], r["grad_norms"],
-                                   positions, restarted=r.get("restarted", [])))
+                                   v["losses"], v["iterations"], v["converged"], v["reason"], v["grad_norms"],
+                                   positions, restarted=v["restarted"]))
     n_starts = min(len(done) + 1, opt.rounds)
     for k in STATE_KEYS:
         check_array(path, arrays, f"start_{k}", "f", (n_starts, N, *state_shapes(d)[k]), what)
