@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import taichi as ti
 from taichi.lang import impl
+from .blas import single_thread
 from .config import compile_mode
 from .errors import UserError
 
@@ -144,6 +145,7 @@ class TaichiRuntime:
         """Initialise Taichi for cfg's arch, dtype and CPU threads, and for `tape` (see the module function
         ensure), re-initialising when any differs; return the generation. Raises ArchError when no backend that
         cfg.arch allows can start here."""
+        single_thread()  # numpy's BLAS off the simulator's CPUs (blas.py), however Taichi was started
         if self.fits(cfg, tape):
             return self.generation
         if impl.get_runtime().prog is not None:

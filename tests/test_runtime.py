@@ -2,6 +2,7 @@
 (another dtype, arch or thread count) bumps the generation, and a Simulator built before refuses to run with
 one line instead of touching freed fields (a bare AssertionError before). Only cheap kernels run here
 (write_step, read_step): no step is compiled."""
+import json
 import os
 import subprocess
 import sys
@@ -211,3 +212,41 @@ def test_a_float32_tape_is_right_whatever_the_compile_mode():
     assert RUNTIME.generation == generation and RUNTIME.settings.dtype == "f32"
     assert np.linalg.norm(g) > 0 and np.linalg.norm(g_tape - g) <= 1e-4 * np.linalg.norm(g)
     assert np.array_equal(sim.backward(), g)  # the Simulator still runs
+
+
+BLAS_SCRIPT = """
+import json, os, sys
+import numpy as np
+from threadpoolctl import threadpool_info, threadpool_limits
+threadpool_limits(limits=2, user_api="blas")  # what a user's process may have set
+before = [pool["num_threads"] for pool in threadpool_info() if pool["user_api"] == "blas"]
+import mls_mpm
+from mls_mpm import runtime
+runtime.ensure(mls_mpm.SimConfig(n_grid=16, steps=4, stride=2, dt=1e-3, E=100.0))
+after = [pool["num_threads"] for pool in threadpool_info() if pool["user_api"] == "blas"]
+print(json.dumps({"before": before, "after": after, "env": os.environ.get("OPENBLAS_NUM_THREADS")}))
+"""
+
+
+def test_starting_taichi_puts_numpys_blas_on_one_thread(tmp_path):
+    """mls_mpm.blas: OpenBLAS's threads spinning after an L-BFGS or transport-loss call slowed the next passes 1.6-1.8x
+    on 2 CPUs. A fresh process whose BLAS a user set to 2 threads runs it on one once Taichi is started, and its
+    children (OPENBLAS_NUM_THREADS) start so."""
+    script = tmp_path / "blas.py"
+    script.write_text(BLAS_SCRIPT)
+    root = Path(__file__).resolve().parents[1]
+    env = {k: v for k, v in os.environ.items() if not k.endswith("_NUM_THREADS")}
+    res = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300,
+                         env={**env, "PYTHONPATH": str(root)})
+    assert res.returncode == 0, res.stderr[-2000:]
+    out = json.loads(res.stdout.strip().splitlines()[-1])
+    assert out["before"], "numpy has no BLAS that threadpoolctl sees"
+    assert max(out["before"]) == 2 or default_threads() == 1  # OpenBLAS caps its threads at the CPUs
+    assert out["after"] == [1] * len(out["after"]) and out["env"] == "1"
+
+
+def test_the_runtime_of_this_process_keeps_blas_on_one_thread():
+    from threadpoolctl import threadpool_info
+
+    pools = [pool for pool in threadpool_info() if pool["user_api"] == "blas"]
+    assert pools and all(pool["num_threads"] == 1 for pool in pools)
