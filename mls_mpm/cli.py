@@ -103,15 +103,18 @@ def build_parser():
     run_options(run, "a scene key, e.g. --set sim.n_grid=128", "run")
 
     morph = sub.add_parser("morph", formatter_class=fmt,
-                           help="morph one image into another: settings chosen from the two shapes, no scene file")
-    morph.add_argument("initial", help="image of the initial shape (see scenes/README.md, Shapes from images)")
-    morph.add_argument("target", help="image of the target shape")
+                           help="morph one shape into another (2D images; 3D meshes, solids, extruded images): "
+                                "settings chosen from the two shapes, no scene file")
+    morph.add_argument("initial", help="the initial shape: an image (scenes/README.md, Shapes from images), or in 3D a "
+                                       "mesh file, shape:NAME or extrude:IMAGE (scenes/README.md, 3D scenes)")
+    morph.add_argument("target", help="the target shape, in the same forms")
     morph.add_argument("--out", help="output folder (default: renders/morph_<initial>_to_<target>/)")
     morph.add_argument("--quality", choices=["fast", "default", "best"], default="default",
-                       help="fast: a 32^2 preview within ~30 s; default: 64^2 within ~2 minutes; best: 64^2, "
-                            "800 iterations, no time budget")
+                       help="fast: a 32^2 preview within ~30 s (3D: 24^3); default: 64^2 (3D: 32^3) within ~2 "
+                            "minutes; best: the default's grid, no time budget (2D: two rounds of 800 iterations)")
     morph.add_argument("--seconds", type=positive, help="wall-clock budget of the optimization, compile included "
-                                                        "(default: 25 fast, 110 default, none best)")
+                                                        "(default: 25 fast, 105 default, none best; 3D: 120 fast and "
+                                                        "default)")
     morph.add_argument("--loss", choices=["auto", "mass", "color"], default="auto",
                        help="auto: the colour loss when both images have more than one colour region, else "
                             "optimal transport + mass")
@@ -154,8 +157,8 @@ def build_parser():
                                      "table to this file (its folder must exist); quality: output folder "
                                      "(default: renders/bench_quality/, with --dim 3 renders/bench_quality_3d/)")
     bench.add_argument("--quick", action="store_true",
-                       help="gradient: 40 steps (3D: 10); tradeoff: fewer rows and iterations (under 10 minutes); quality: "
-                            "3 pairs at --quality fast")
+                       help="gradient: 40 steps (3D: 10); tradeoff: fewer rows and iterations (under 10 minutes); "
+                            "quality: 3 pairs at --quality fast")
     bench.add_argument("--arch", choices=["cpu", "gpu", "cuda", "vulkan"], default="cpu",
                        help="gradient: the Taichi backend measured")
     bench.add_argument("--dim", type=int, choices=[2, 3], default=None,

@@ -151,6 +151,28 @@ def test_help_shows_defaults(capsys):
     assert "(default: 12)" in text and "(default: 300)" in text and "(default: 1e-06)" in text
 
 
+def test_morph_help_states_the_presets(capsys):
+    """The budgets and grids `mls-mpm morph --help` gives are those of morph.QUALITIES and QUALITIES_3D (it said
+    110 s for the default's 105 before, and nothing of 3D)."""
+    from mls_mpm.morph import QUALITIES, QUALITIES_3D
+
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["morph", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    budgets = re.search(r"\(default: (\d+) fast, (\d+) default, none best; 3D: (\d+) fast and default\)", text)
+    assert budgets, text
+    assert [float(b) for b in budgets.groups()] == [QUALITIES["fast"].max_seconds, QUALITIES["default"].max_seconds,
+                                                    QUALITIES_3D["fast"].max_seconds]
+    assert QUALITIES_3D["default"].max_seconds == QUALITIES_3D["fast"].max_seconds
+    assert QUALITIES["best"].max_seconds == QUALITIES_3D["best"].max_seconds == 0
+    grids = re.search(r"fast: a (\d+)\^2 preview within ~30 s \(3D: (\d+)\^3\); default: (\d+)\^2 \(3D: (\d+)\^3\)",
+                      text)
+    assert grids, text
+    assert [int(g) for g in grids.groups()] == [QUALITIES["fast"].n_grid, QUALITIES_3D["fast"].n_grid,
+                                                QUALITIES["default"].n_grid, QUALITIES_3D["default"].n_grid]
+    assert f"2D: two rounds of {QUALITIES['best'].iterations} iterations" in text and QUALITIES["best"].rounds == 2
+
+
 # ---------------------------------------------------------------------------------------------------------
 # `mls-mpm run` end to end, then `mls-mpm render` of its result
 
