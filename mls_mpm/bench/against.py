@@ -42,7 +42,7 @@ def bench_against(rev, repeats=3, quick=False, arch="cpu", dims=(2, 3), out=None
     dirty = " + uncommitted changes" if _git("status", "--porcelain").stdout.strip() else ""
     progress = progress or (lambda text: print(text, file=sys.stderr, flush=True))
     rows = []
-    with _sigterm_unwinds(), worktree(commit) as tree:
+    with sigterm_unwinds(), worktree(commit) as tree:
         trees = {"old": tree, "new": ROOT}
         for case in (cases or CASES).values():
             if case.get("dim", 2) not in dims:
@@ -162,7 +162,7 @@ def worktree(commit):
 
 
 @contextlib.contextmanager
-def _sigterm_unwinds():
+def sigterm_unwinds():
     """Inside the block SIGTERM exits through the `finally` clauses (exit 143) instead of killing at once, so that
     the temporary worktree is removed; the previous handler is put back afterwards. Signals reach the main thread
     only: elsewhere this does nothing."""
