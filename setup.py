@@ -3,7 +3,7 @@ from setuptools import setup
 setup(
     name="mls-mpm",
     version="0.1.0",
-    description="Differentiable 2D MLS-MPM with hand-written reverse kernels for shape-morphing animation",
+    description="Differentiable 2D and 3D MLS-MPM with hand-written reverse kernels for shape-morphing animation",
     python_requires=">=3.10",
     packages=["mls_mpm", "mls_mpm.bench", "adjoint"],
     license="MIT",

@@ -1,4 +1,4 @@
-"""Differentiable 2D MLS-MPM for shape-morphing animation (M. Xu, 2020), with hand-written reverse kernels.
+"""Differentiable MLS-MPM in 2D and 3D for shape-morphing animation (M. Xu, 2020), with hand-written reverse kernels.
 
 Importing the package imports nothing else: each name below, and each submodule (`mls_mpm.runtime`, ...), is
 imported on first use (PEP 562), so the command line starts without loading Taichi.

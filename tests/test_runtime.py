@@ -229,7 +229,7 @@ print(json.dumps({"before": before, "after": after, "env": os.environ.get("OPENB
 
 
 def test_starting_taichi_puts_numpys_blas_on_one_thread(tmp_path):
-    """mls_mpm.blas: OpenBLAS's threads spinning after an L-BFGS or transport-loss call slowed the next passes 1.6-1.8x
+    """mls_mpm.blas: OpenBLAS's threads spinning after an L-BFGS or transport-loss call slowed the next passes 1.4-1.9x
     on 2 CPUs. A fresh process whose BLAS a user set to 2 threads runs it on one once Taichi is started, and its
     children (OPENBLAS_NUM_THREADS) start so."""
     script = tmp_path / "blas.py"
