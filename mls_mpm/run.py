@@ -9,7 +9,8 @@ Files in the output folder, all written atomically (mode 0666 minus the umask):
 
 checkpoint.npz is rewritten at the checkpoints of the optimizer (see mls_mpm/optimize.py: after every control
 step of gd, every step of adam and positions, every iteration of lbfgs; at most one every CHECKPOINT_SECONDS,
-and always the last one before an interrupt) and after every finished round; it holds
+or less often where writing one takes more than CHECKPOINT_SHARE of that, and always the last one before an
+interrupt) and after every finished round; it holds
 the finished rounds, the initial state of the next one and the optimizer state of the current one. `--resume`
 restarts from the last one written, and ends bit for bit where an uninterrupted run ends. When it records every
 round as done (the run was killed while writing its result), the resume only re-simulates the last round and
@@ -283,23 +284,32 @@ def _remove_stale_renders(out, emit):
 
 
 # The optimizers checkpoint after every iteration (an L-BFGS state at 64^2 is ~12 MB: 9% of a morph's time when
-# every one was written); a checkpoint less than this many seconds after the last one written is held back, and
+# every one was written); a checkpoint less than CHECKPOINT_SECONDS after the last one written is held back, and
 # written if the optimizer then returns interrupted (its last act before returning). So an interrupt (Ctrl-C,
 # SIGTERM) loses nothing; a kill that gives no chance to save (SIGKILL, power loss) loses at most this much work.
+# A large state waits longer, so that writing takes at most CHECKPOINT_SHARE of the run: the next write waits the
+# last write's time / CHECKPOINT_SHARE if that is more. A 3D L-BFGS state of 5,544 particles (10 controls) is 84 MiB,
+# written in 0.10-0.19 s on the AMD EPYC of BENCHMARKS.md, where the wait changes nothing measurable (a 40-iteration
+# run: 28.9 s before, 29.6 s after); one of 20,000 particles is 302 MiB, 0.38-1.2 s a write, up to a third of a run that
+# wrote one every 2 s.
 CHECKPOINT_SECONDS = 2.0
+CHECKPOINT_SHARE = 0.05
 
 
 class _Throttled:
-    """on_checkpoint for an optimizer: write(state, clock reading) at most every CHECKPOINT_SECONDS; flush()
-    writes the state held back, if any (only right after the optimizer returned: its arrays are unchanged)."""
+    """on_checkpoint for an optimizer: write(state, clock reading) at most every CHECKPOINT_SECONDS, or every
+    (the last write's time / CHECKPOINT_SHARE) if that is longer; flush() writes the state held back, if any (only
+    right after the optimizer returned: its arrays are unchanged)."""
 
     def __init__(self, write, clock=time.perf_counter):
         self.write, self.clock, self.last, self.held = write, clock, -math.inf, None
+        self.wait = CHECKPOINT_SECONDS
 
     def __call__(self, state):
         now = self.clock()
-        if now - self.last >= CHECKPOINT_SECONDS:
+        if now - self.last >= self.wait:
             self.write(state, now)
+            self.wait = max(CHECKPOINT_SECONDS, (self.clock() - now) / CHECKPOINT_SHARE)
             self.last, self.held = now, None
         else:
             self.held = (state, now)

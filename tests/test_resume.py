@@ -419,3 +419,28 @@ def test_checkpoints_are_throttled_and_the_last_one_before_an_interrupt_is_writt
     assert written[-1] == (9, 100.0 + 9 * step)  # with the clock reading of its own call
     saver.flush()
     assert len(written) == 4  # nothing held back any more
+
+
+def test_a_checkpoint_that_is_slow_to_write_is_written_less_often():
+    """run._Throttled: after a write that took t seconds the next waits t / CHECKPOINT_SHARE when that is longer than
+    CHECKPOINT_SECONDS, so writing takes at most that share of the run; a quick write brings the wait back down."""
+    now = [0.0]
+    written = []
+    took = {0: 0.5, 1: 0.0}  # seconds each write takes, by the order of writes
+
+    def write(state, at):
+        now[0] += took.get(len(written), 0.0)
+        written.append((state["i"], at))
+
+    saver = run_module._Throttled(write, clock=lambda: now[0])
+    slow = 0.5 / run_module.CHECKPOINT_SHARE
+    assert slow > run_module.CHECKPOINT_SECONDS
+    step = 0.25
+    for i in range(200):
+        saver({"i": i})
+        now[0] += step
+        if len(written) == 3:
+            break
+    (i0, t0), (i1, t1), (i2, t2) = written
+    assert t0 == 0.0 and t1 - t0 >= slow and t1 - t0 < slow + step + 0.5  # waited for the slow write
+    assert t2 - t1 >= run_module.CHECKPOINT_SECONDS and t2 - t1 < run_module.CHECKPOINT_SECONDS + step
