@@ -40,15 +40,15 @@ def run_once(tree, command, out):
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                 usage="%(prog)s REV [--repeats K] -- run|morph ... (the mls-mpm command)")
     ap.add_argument("rev", help="git revision to compare the working tree with, e.g. HEAD~1")
     ap.add_argument("--repeats", type=int, default=2, help="measured runs of each tree after the warm-up (default 2)")
-    ap.add_argument("command", nargs="*", help="after --: the mls-mpm command (morph ... or run ...)")
-    argv = sys.argv[1:]
+    argv = sys.argv[1:]  # the mls-mpm command after "--" is split off by hand: argparse would read its options
     cut = argv.index("--") if "--" in argv else len(argv)
     args = ap.parse_args(argv[:cut])
     command = argv[cut + 1:]
-    if args.command or not command or command[0] not in ("run", "morph"):
+    if not command or command[0] not in ("run", "morph"):
         ap.error("expected -- then an `mls-mpm run` or `mls-mpm morph` command")
     if args.repeats < 1:
         ap.error(f"--repeats {args.repeats}: expected at least 1")
