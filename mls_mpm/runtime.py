@@ -19,6 +19,7 @@ from taichi.lang import impl
 from .blas import single_thread
 from .config import compile_mode
 from .errors import UserError
+from .positions import short_positions
 
 # what each sim.arch may run on, in the order tried
 BACKENDS = {"cpu": ("cpu",), "gpu": ("cuda", "vulkan"), "cuda": ("cuda",), "vulkan": ("vulkan",)}
@@ -146,6 +147,7 @@ class TaichiRuntime:
         ensure), re-initialising when any differs; return the generation. Raises ArchError when no backend that
         cfg.arch allows can start here."""
         single_thread()  # numpy's BLAS off the simulator's CPUs (blas.py), however Taichi was started
+        short_positions()  # Taichi's front end without a wrapped caret line per node (positions.py)
         if self.fits(cfg, tape):
             return self.generation
         if impl.get_runtime().prog is not None:
