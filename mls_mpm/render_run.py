@@ -43,11 +43,15 @@ class RenderError(UserError):
     """A render option, or the run folder to render, cannot be used."""
 
 
-def render_run(out_dir, mode=None, size=None, every=None, arch=None, emit=print, should_stop=None):
+def render_run(out_dir, mode=None, size=None, every=None, arch=None, emit=print, should_stop=None, sim=None):
     """Render the run in out_dir; mode/size/every default (None) to the scene's [render] settings.
 
     should_stop: a callable polled before each frame; when it turns true, rendering stops by raising
-    errors.Interrupted, the old frames kept. Returns the paths of the frames written.
+    errors.Interrupted, the old frames kept. sim: the Simulator that made the run (mls-mpm run's own), used for the
+    re-simulation where it serves the result's settings and particle count (Simulator.serves): Taichi then does
+    not build its kernels a second time (about 3 s of a 3D run's rendering on 2 cores, BENCHMARKS.md) and no
+    second set of fields is allocated; the frames are the same bytes either way. Returns the paths of the frames
+    written.
     """
     out = Path(out_dir)
     meta, arrays = load_result(out)
@@ -67,7 +71,9 @@ def render_run(out_dir, mode=None, size=None, every=None, arch=None, emit=print,
     controls = arrays["controls"]
     N = controls.shape[2]
     outline = arrays["target_grid"] if rs.get("outline", False) else None
-    _check_memory(cfg, N, size, mode, None if outline is None else len(outline), size_named)
+    if sim is not None and not sim.serves(cfg, N):
+        sim = None  # a simulator of other settings: _states builds one
+    _check_memory(cfg, N, size, mode, None if outline is None else len(outline), size_named, sim is None)
     emit(f"rendering scene {settings['scene']['name']} from {out / 'result.npz'}")
     sequences = list(SEQUENCES) if dim == 3 else [FRAMES_DIR]
     timing = {}
@@ -80,7 +86,7 @@ def render_run(out_dir, mode=None, size=None, every=None, arch=None, emit=print,
             renderer = Renderer(cfg.n_grid, N, size=size, rest_node_mass=rest_node_mass(cfg, cfg.n_grid),
                                 mode=mode, body_outline=outline is not None, background=background)
             writer = FrameWriter(out, folder=NEW_DIR)
-            for state in _states(cfg, meta, arrays, every):
+            for state in _states(cfg, meta, arrays, every, sim):
                 if should_stop is not None and should_stop():
                     raise Interrupted("rendering interrupted; the old frames are kept")
                 writer.write(renderer.render(state["x"], cfg.m_p, colors=arrays["colors"], F=state["F"],
@@ -88,7 +94,7 @@ def render_run(out_dir, mode=None, size=None, every=None, arch=None, emit=print,
         else:
             renderer = Preview3D(cfg.n_grid, size, mode, colored=_colored(settings),
                                  spacing=cfg.dx / cfg.particles_per_cell ** (1 / 3))
-            _render_3d(out, renderer, cfg, meta, arrays, every, outline, should_stop, timing)
+            _render_3d(out, renderer, cfg, meta, arrays, every, outline, should_stop, timing, sim)
         frames_dir = [swap_in(out, folder) for folder in sequences][0]
     except OSError as e:
         for folder in sequences:
@@ -123,9 +129,9 @@ def render_run(out_dir, mode=None, size=None, every=None, arch=None, emit=print,
     return paths
 
 
-def _render_3d(out, preview, cfg, meta, arrays, every, outline, should_stop, timing):
+def _render_3d(out, preview, cfg, meta, arrays, every, outline, should_stop, timing, sim):
     """Write each 3D frame's preview, particles and mesh into the .new folders; timing: seconds spent per part
-    (the re-simulation, the field, each output), summed over the frames."""
+    (the re-simulation, the field, each output), summed over the frames; sim: as render_run's."""
     frames = FrameWriter(out, folder=NEW_DIR)
     particles = FrameWriter(out, folder=f"{PARTICLES_DIR}.new", name=PLY_NAME, pattern=PLY_RE, save=write_particles)
     meshes = FrameWriter(out, folder=f"{MESHES_DIR}.new", name=PLY_NAME, pattern=PLY_RE, save=write_mesh)
@@ -140,7 +146,7 @@ def _render_3d(out, preview, cfg, meta, arrays, every, outline, should_stop, tim
         timing[part] += time.perf_counter() - t0
         return value
 
-    states = _states(cfg, meta, arrays, every)
+    states = _states(cfg, meta, arrays, every, sim)
     while (state := timed("simulation", next, states, None)) is not None:
         if should_stop is not None and should_stop():
             raise Interrupted("rendering interrupted; the old frames are kept")
@@ -173,13 +179,15 @@ def _option(name, value, stored, where, modes=RENDER_MODES):
     return value if name == "mode" else int(value)
 
 
-def _check_memory(cfg, n_particles, size, mode, target_res, what):
+def _check_memory(cfg, n_particles, size, mode, target_res, what, new_simulator=True):
     """Refuse, before anything is allocated, a renderer that would not fit beside the re-simulation: within
-    sim.max_memory_gb when set, else 90% of the memory free now (as memory.check_memory for the simulation)."""
+    sim.max_memory_gb when set, else 90% of the memory free now (as memory.check_memory for the simulation).
+    new_simulator: whether the re-simulation allocates a Simulator; else it reuses the run's, whose fields count
+    against sim.max_memory_gb but are no longer in the free memory."""
     word = 8 if cfg.dtype == "f64" else 4
     need = (estimate_bytes(cfg.n_grid, n_particles, size, mode, word, target_res) if cfg.dim == 2 else
             estimate_bytes_3d(cfg.n_grid, n_particles, size, mode, word, target_res))
-    sim = memory.estimate_bytes(cfg, n_particles)
+    sim = memory.estimate_bytes(cfg, n_particles) if new_simulator or cfg.max_memory_gb else 0
     limit, of = memory.limit(cfg)
     if limit is not None and need + sim > limit:
         raise RenderError(f"{what}: the renderer needs about {need / 2 ** 30:.2f} GiB beside the simulation's "
@@ -221,16 +229,18 @@ def _difference(a, b, key=""):
     return None if a == b else (key or "settings", a, b)
 
 
-def _states(cfg, meta, arrays, every):
+def _states(cfg, meta, arrays, every, sim=None):
     """The states of the frames in order: every `every` steps of each round (a round's first frame is the
-    last of the one before), or, for the positions method, the sampled shape and the optimized positions."""
+    last of the one before), or, for the positions method, the sampled shape and the optimized positions. sim: a
+    Simulator to re-simulate with where it serves (render_run), else one is built."""
     if meta.get("method") == "positions":  # no animation
         first = {k: arrays[f"init_{k}"][0] for k in STATE_KEYS}
         yield first
         yield {**first, "x": arrays["final_x"]}
         return
     controls = arrays["controls"]
-    sim = Simulator(cfg, arrays["init_x"][0])
+    if sim is None or not sim.serves(cfg, len(arrays["init_x"][0])):
+        sim = Simulator(cfg, arrays["init_x"][0])
     steps = list(range(0, cfg.steps + 1, every))
     if steps[-1] != cfg.steps:
         steps.append(cfg.steps)

@@ -180,7 +180,7 @@ def _run(scene, prob, sim, out, resume, emit, should_stop, render, t0):
         from .render_run import render_run
 
         try:
-            render_run(out, emit=emit, should_stop=should_stop)
+            render_run(out, emit=emit, should_stop=should_stop, sim=sim)  # sim: its kernels are built already
         except Interrupted:
             emit(f"rendering interrupted: the result is saved in {out}; `mls-mpm render {out}` renders it")
             return {**summary, "interrupted": True, "render_interrupted": True}

@@ -111,6 +111,18 @@ class Simulator:
         """The schedule this simulator steps in, "serial" or "parallel": cfg.schedule, or what `auto` resolved to."""
         return "serial" if self._serial else "parallel"
 
+    def serves(self, cfg, n_particles) -> bool:
+        """Whether this simulator can simulate cfg with n_particles particles now: the same settings and count, and
+        built in the Taichi runtime that runs now (a re-initialisation frees its fields). render_run re-simulates a
+        run with the run's own simulator so: its kernels, already built, are not built again."""
+        if cfg != self.cfg or n_particles != self.n_particles:
+            return False
+        try:
+            runtime.RUNTIME.check(self._generation, self._built_for)
+        except runtime.StaleSimulatorError:
+            return False
+        return True
+
     @property
     def control_shape(self):
         return (self.cfg.n_controls, self.n_particles, self.dim, self.dim)

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from mls_mpm import memory
+from mls_mpm import render_run as render_run_module
 from mls_mpm.errors import Interrupted, UserError
 from mls_mpm.frames import FrameWriter, frame_paths
 from mls_mpm.render_run import RenderError, render_run
@@ -96,6 +97,46 @@ def test_a_renderer_above_the_free_memory_is_refused_before_allocating(folder, m
     assert_old_frames_kept(folder, before)
     render_run(folder, emit=lambda *_: None)
     assert [p.name for p in frame_paths(folder / "frames")] == FRAMES
+
+
+def test_a_run_renders_with_its_own_simulator_and_the_same_bytes(tmp_path, monkeypatch):
+    """run_scene passes its Simulator to render_run, which re-simulates with it (Simulator.serves) instead of
+    building a second one (whose kernels Taichi would build again); `mls-mpm render` alone builds one, and both write
+    the same frames, byte for byte."""
+    built = []
+
+    class Counted(render_run_module.Simulator):
+        def __init__(self, *args, **kwargs):
+            built.append(args[0])
+            super().__init__(*args, **kwargs)
+
+    monkeypatch.setattr(render_run_module, "Simulator", Counted)
+    out = tmp_path / "tiny"
+    run_scene(load_scene(TINY, ["optimize.iterations=1"]), out, emit=lambda *_: None)
+    assert built == []
+    frames = snapshot(out / "frames")
+    assert sorted(frames) == FRAMES
+    render_run(out, emit=lambda *_: None)
+    assert len(built) == 1
+    assert snapshot(out / "frames") == frames
+
+
+def test_the_memory_check_counts_a_reused_simulator_only_against_a_budget(monkeypatch):
+    """A renderer that fits in the free memory beside the run's own Simulator (reused: its fields are allocated, no
+    longer free) passes, where a new Simulator would not fit beside it; under sim.max_memory_gb the reused one's
+    fields count against the budget as a new one's would."""
+    cfg = load_scene(TINY).sim
+    n, size = 300, 64
+    renderer = render_run_module.estimate_bytes(cfg.n_grid, n, size, "mass", 8)
+    simulator = memory.estimate_bytes(cfg, n)
+    monkeypatch.setattr(memory, "available_bytes", lambda: (renderer + simulator / 2) / 0.9)
+    render_run_module._check_memory(cfg, n, size, "mass", None, "--size 64", new_simulator=False)
+    with pytest.raises(RenderError, match=r"^--size 64: the renderer needs about .* beside the simulation's"):
+        render_run_module._check_memory(cfg, n, size, "mass", None, "--size 64", new_simulator=True)
+    budget = cfg.replace(max_memory_gb=(renderer + simulator / 2) / 2 ** 30)
+    for new in (False, True):
+        with pytest.raises(RenderError, match=r"sim\.max_memory_gb"):
+            render_run_module._check_memory(budget, n, size, "mass", None, "--size 64", new_simulator=new)
 
 
 def test_new_frames_replace_the_old_ones_only_when_all_are_written(folder):

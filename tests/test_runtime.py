@@ -67,6 +67,18 @@ def test_a_simulator_of_an_older_runtime_refuses_to_run():
     assert sim32.state(0)["x"].shape == x0.shape  # the new one works
 
 
+def test_a_simulator_serves_only_its_own_settings_count_and_runtime():
+    """Simulator.serves (render_run re-simulates a run with the run's own simulator): the same settings and particle
+    count in the runtime it was built in; not after a re-initialisation, which freed its fields."""
+    x0 = blob(n_grid=16, radius=0.2)
+    sim = mls_mpm.Simulator(config(), x0)
+    assert sim.serves(config(), len(x0))
+    assert not sim.serves(config(dt=2e-3), len(x0))
+    assert not sim.serves(config(), len(x0) - 1)
+    mls_mpm.Simulator(config(dtype="f32"), x0)  # re-initialises Taichi
+    assert not sim.serves(config(), len(x0))
+
+
 def test_threads_that_differ_from_taichis_reinitialise():
     """threads = 1 after Taichi started with the default: Taichi runs 1 thread and the lanes match it."""
     before = RUNTIME.generation
