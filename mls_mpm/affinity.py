@@ -24,6 +24,7 @@ from .state import LANE_TASK
 HOLD_SPINS = 1 << 20  # atomic reads each worker spins once all have arrived (2-8 ms), far above any idle thread
 WAIT_SPINS = 1 << 24  # give up waiting for the other workers after this many (fewer workers running than asked)
 MIN_HELD_NS = 500_000  # CPU time a worker gains in the probe, at least
+PROBE_TRIES = 3  # probes before the workers are left unpinned (a busy moment can hide one); each takes 2-8 ms
 
 
 @ti.kernel
@@ -55,16 +56,19 @@ def _cpu_ns():
 
 
 def find_workers(threads):
-    """Thread ids of Taichi's `threads` CPU worker threads (Taichi running on the CPU), or None when the probe does
-    not single out exactly that many."""
+    """Thread ids of Taichi's `threads` CPU worker threads (Taichi running on the CPU), or None when PROBE_TRIES
+    probes do not single out exactly that many."""
     count = ti.field(ti.i32, shape=())
     hold_lanes(count, threads, 0)  # compile (and wake the workers) before measuring
-    count[None] = 0
-    before = _cpu_ns()
-    hold_lanes(count, threads, HOLD_SPINS)
-    after = _cpu_ns()
-    held = sorted(t for t in after if after[t] - before.get(t, after[t]) >= MIN_HELD_NS)
-    return held if len(held) == threads else None
+    for _ in range(PROBE_TRIES):
+        count[None] = 0
+        before = _cpu_ns()
+        hold_lanes(count, threads, HOLD_SPINS)
+        after = _cpu_ns()
+        held = sorted(t for t in after if after[t] - before.get(t, after[t]) >= MIN_HELD_NS)
+        if len(held) == threads:
+            return held
+    return None
 
 
 def pin_workers(threads):

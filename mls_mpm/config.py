@@ -38,12 +38,19 @@ def default_threads() -> int:
 
 
 def pins_workers(threads) -> bool:
-    """Whether Taichi's `threads` CPU worker threads are pinned one to each CPU (mls_mpm/affinity.py): on Linux,
-    with at least 2 threads, exactly as many as the CPUs this process may run on."""
+    """Whether Taichi's `threads` CPU worker threads are to be pinned one to each CPU (mls_mpm/affinity.py): on
+    Linux, with at least 2 threads, exactly as many as the CPUs this process may run on, where this process may set
+    a thread's CPUs (a sandbox may forbid it: setting the calling thread's own mask to itself tells). A fact of the
+    machine, not of its load: `auto` chooses the schedule by it (SimConfig.serial), so that a run's schedule, and
+    with it its round-off, does not depend on whether the probe that singles out the workers succeeded."""
     if threads < 2 or not hasattr(os, "sched_setaffinity") or not os.path.isdir("/proc/self/task"):
         return False
     try:
-        return len(os.sched_getaffinity(0)) == threads
+        cpus = os.sched_getaffinity(0)
+        if len(cpus) != threads:
+            return False
+        os.sched_setaffinity(0, cpus)  # no change; raises where setting masks is not allowed
+        return True
     except OSError:
         return False
 
@@ -110,8 +117,9 @@ class SimConfig:
         mls_mpm/persistent.py, or one launch per step when other work holds the CPUs; on a GPU one launch per
         step); "serial" runs all steps in one serial launch (faster for small scenes on a CPU); "auto" picks
         serial on a CPU with one thread or below SERIAL_BELOW particle-node units (2D on 2 threads:
-        SERIAL_BELOW_2D_TWO_THREADS, or SERIAL_BELOW_2D_PINNED when they are pinned one to each of the
-        process's 2 CPUs; see BENCHMARKS.md), else parallel.
+        SERIAL_BELOW_2D_TWO_THREADS, or SERIAL_BELOW_2D_PINNED when they are to be pinned one to each of the
+        process's 2 CPUs, pins_workers; see BENCHMARKS.md), else parallel. The choice depends on the settings,
+        the particle count and the machine's CPUs, not on its load, so a run is bit-identical to itself.
     max_memory_gb: refuse a simulator whose preallocated fields would exceed this many GiB
         (0: 90% of the memory available when it is built).
     """
@@ -221,7 +229,7 @@ class SimConfig:
 
     def serial(self, n_particles, pinned=None) -> bool:
         """Whether stepping runs serially in one launch (see `schedule`). pinned: whether Taichi's worker threads
-        were pinned (runtime.TaichiRuntime.pinned, once Taichi runs); None: whether they will be (pins_workers)."""
+        are to be pinned; None: pins_workers, as the Simulator asks (a test may say either)."""
         if self.schedule != "auto":
             return self.schedule == "serial"
         if self.arch != "cpu":

@@ -98,8 +98,9 @@ def run_scene(scene, out_dir, resume=False, emit=print, should_stop=None, render
 
 def _resumed_config(path, cfg):
     """The simulation settings to resume the checkpoint at path with: under `sim.schedule = "auto"`, the schedule
-    the checkpoint was made in. `auto` can resolve otherwise in the resumed process (for a 2D scene on 2 CPUs it
-    follows whether mls_mpm/affinity.py's probe pinned the workers, which can fail on a loaded machine), and the two
+    the checkpoint was made in. `auto` can resolve otherwise in the resumed process (it follows the CPUs this
+    process may run on and whether it may pin threads to them, config.pins_workers, which a resume elsewhere or
+    under another CPU mask can change), and the two
     schedules differ in round-off, which a bit-for-bit resume must repeat. A checkpoint that names none (written
     before checkpoints did) resumes under `auto`."""
     if cfg.schedule != "auto":

@@ -88,13 +88,13 @@ class Simulator:
             _check_backend(cfg, loss)
         check_memory(cfg, self.n_particles, grids=loss_grid_shapes(loss), position_loss=isinstance(loss, PositionLoss))
         self.loss = loss
-        # the schedule by whether the workers were pinned, not whether they would be: if the probe of
-        # mls_mpm/affinity.py could not single them out, 2D on 2 threads keeps the unpinned threshold
-        pinned = bool(runtime.RUNTIME.pinned)
-        self._serial = cfg.serial(self.n_particles, pinned)
+        # the schedule by whether the workers are to be pinned (config.pins_workers), not by whether the probe of
+        # mls_mpm/affinity.py singled them out, which can fail on a busy machine: the same schedule, and so the same
+        # round-off, in every run of these settings here (a failed probe leaves the threads unpinned, only slower)
+        self._serial = cfg.serial(self.n_particles)
         self.fields = State(cfg, self.n_particles, loss_grids=loss.grids if loss else (),
                             position_loss=isinstance(loss, PositionLoss), colors=isinstance(loss, ColorLoss),
-                            lanes=cfg.lanes(self.n_particles, pinned))
+                            lanes=cfg.lanes(self.n_particles))
         upload_loss(self.fields, self.loss)
         self._adjoint = None
         self._start = 0
