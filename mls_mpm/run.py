@@ -100,9 +100,8 @@ def _resumed_config(path, cfg):
     """The simulation settings to resume the checkpoint at path with: under `sim.schedule = "auto"`, the schedule
     the checkpoint was made in. `auto` can resolve otherwise in the resumed process (it follows the CPUs this
     process may run on and whether it may pin threads to them, config.pins_workers, which a resume elsewhere or
-    under another CPU mask can change), and the two
-    schedules differ in round-off, which a bit-for-bit resume must repeat. A checkpoint that names none (written
-    before checkpoints did) resumes under `auto`."""
+    under another CPU mask can change), and the two schedules differ in round-off, which a bit-for-bit resume must
+    repeat. A checkpoint that names none (written before checkpoints did) resumes under `auto`."""
     if cfg.schedule != "auto":
         return cfg  # the scene's own schedule, which the checkpoint's fingerprint holds
     meta, _ = load_npz(path, "checkpoint", meta_only=True)  # _load_checkpoint reads the arrays
