@@ -73,7 +73,8 @@ def render_run(out_dir, mode=None, size=None, every=None, arch=None, emit=print,
     outline = arrays["target_grid"] if rs.get("outline", False) else None
     if sim is not None and not sim.serves(cfg, N):
         sim = None  # a simulator of other settings: _states builds one
-    _check_memory(cfg, N, size, mode, None if outline is None else len(outline), size_named, sim is None)
+    _check_memory(cfg, N, size, mode, None if outline is None else len(outline), size_named,
+                  new_simulator=sim is None)
     emit(f"rendering scene {settings['scene']['name']} from {out / 'result.npz'}")
     sequences = list(SEQUENCES) if dim == 3 else [FRAMES_DIR]
     timing = {}
@@ -231,15 +232,15 @@ def _difference(a, b, key=""):
 
 def _states(cfg, meta, arrays, every, sim=None):
     """The states of the frames in order: every `every` steps of each round (a round's first frame is the
-    last of the one before), or, for the positions method, the sampled shape and the optimized positions. sim: a
-    Simulator to re-simulate with where it serves (render_run), else one is built."""
+    last of the one before), or, for the positions method, the sampled shape and the optimized positions. sim: the
+    Simulator to re-simulate with (render_run has found that it serves), or None: one is built."""
     if meta.get("method") == "positions":  # no animation
         first = {k: arrays[f"init_{k}"][0] for k in STATE_KEYS}
         yield first
         yield {**first, "x": arrays["final_x"]}
         return
     controls = arrays["controls"]
-    if sim is None or not sim.serves(cfg, len(arrays["init_x"][0])):
+    if sim is None:
         sim = Simulator(cfg, arrays["init_x"][0])
     steps = list(range(0, cfg.steps + 1, every))
     if steps[-1] != cfg.steps:
