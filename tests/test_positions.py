@@ -17,7 +17,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 # A kernel with an undefined name, compiled in a fresh process after runtime.ensure; prints what Taichi raised.
 BROKEN_KERNEL = '''
-import json, sys
+import json
 import taichi as ti
 import mls_mpm
 from mls_mpm import runtime
@@ -38,7 +38,7 @@ try:
 except Exception as e:
     message = str(e)
     print(json.dumps({"type": type(e).__name__, "message": message,
-                      "short": ast_transformer_utils.ASTTransformerContext.get_pos_info.__module__}))
+                      "positions_from": ast_transformer_utils.ASTTransformerContext.get_pos_info.__module__}))
 '''
 
 
@@ -57,7 +57,7 @@ def compile_error(tmp_path, choice):
 def test_a_compile_error_still_names_file_line_function_and_source(tmp_path):
     short, script = compile_error(tmp_path, None)
     full, _ = compile_error(tmp_path, "full")
-    assert short["short"] == "mls_mpm.positions" and full["short"] == ast_transformer_utils.__name__
+    assert short["positions_from"] == "mls_mpm.positions" and full["positions_from"] == ast_transformer_utils.__name__
     assert short["type"] == full["type"] == "TaichiNameError"
     source = "    total += no_such_name * 2.0"
     where = f'File "{script}", line {BROKEN_KERNEL.splitlines().index(source) + 1}, in broken_kernel:'
