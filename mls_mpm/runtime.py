@@ -20,6 +20,7 @@ from .blas import single_thread
 from .config import compile_mode
 from .errors import UserError
 from .positions import short_positions
+from .sources import read_sources_once
 
 # what each sim.arch may run on, in the order tried
 BACKENDS = {"cpu": ("cpu",), "gpu": ("cuda", "vulkan"), "cuda": ("cuda",), "vulkan": ("vulkan",)}
@@ -148,6 +149,7 @@ class TaichiRuntime:
         cfg.arch allows can start here."""
         single_thread()  # numpy's BLAS off the simulator's CPUs (blas.py), however Taichi was started
         short_positions()  # Taichi's front end without a wrapped caret line per node (positions.py)
+        read_sources_once()  # ... and reading each ti.func's source once, not at every call site (sources.py)
         if self.fits(cfg, tape):
             return self.generation
         if impl.get_runtime().prog is not None:
