@@ -4,6 +4,7 @@ import taichi as ti
 from mls_mpm.config import STENCIL
 from mls_mpm.kernels import axis0_column, join, on_grid, roll, slab_dN, slab_dN_add, slab_offsets, stencil, weights
 from mls_mpm.losses import OT_KINDS, node_penalty, node_residual, splat_value
+from mls_mpm.sizes import n_live
 
 from .state import add_own, zero_step
 
@@ -28,7 +29,7 @@ def ot_loss_reverse(s: ti.template(), g: ti.template()):
 @ti.kernel
 def splat_reverse(s: ti.template(), g: ti.template(), a: ti.template(), f: ti.i32):
     """dL/dx_p += sum_i dN/dx_p (value_p . dL/dm_i) with g's dx (eq 42-43)."""
-    for p in range(s.n_particles):
+    for p in range(n_live(s)):
         base, fx = stencil(s.x[f, p], g.inv_dx)
         w, dw = weights(fx)
         value = splat_value(s, g, p)
@@ -58,7 +59,7 @@ def splat_slab_gather(g: ti.template(), base, w0, dw0, w, dw, value, i0, adj_x):
 @ti.kernel
 def position_loss_reverse(s: ti.template(), a: ti.template(), f: ti.i32):
     """dL/dx_p += x_p - x_pu (eq 10)."""
-    for p in range(s.n_particles):
+    for p in range(n_live(s)):
         add_own(a.adj_x, f % 2, p, s.x[f, p] - s.target_x[p])
 
 

@@ -1,13 +1,15 @@
 """Adjoint fields: one step of particle adjoints (two slots, ping-pong) and one grid, never N_t of them."""
 import taichi as ti
 
+from mls_mpm.sizes import n_live
+
 
 @ti.data_oriented
 class AdjointState:
     """dL/d(.) of one State. Particle adjoints of step f live in slot f % 2."""
 
     def __init__(self, s, dtype):
-        N, d, grid = s.n_particles, s.dim, s.grid_shape
+        N, d, grid = s.capacity, s.dim, s.grid_shape  # particle fields as the State's
         self.adj_x = ti.Vector.field(d, dtype, shape=(2, N))  # dL/dx_p
         self.adj_v = ti.Vector.field(d, dtype, shape=(2, N))  # dL/dv_p
         self.adj_C = ti.Matrix.field(d, d, dtype, shape=(2, N))  # dL/dC_p
@@ -43,7 +45,7 @@ def zero_particle(a: ti.template(), slot, p):
 @ti.kernel
 def zero_step(s: ti.template(), a: ti.template(), f: ti.i32):
     """Zero both particle slots and the grid adjoints before a reverse pass (later steps zero what they consume)."""
-    for p in range(s.n_particles):
+    for p in range(n_live(s)):
         zero_particle(a, 0, p)
         zero_particle(a, 1, p)
     for I in ti.grouped(ti.ndrange(*s.grid_shape)):

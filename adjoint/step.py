@@ -14,6 +14,7 @@ import taichi as ti
 
 from mls_mpm.active import node_in, reverse_box, volume
 from mls_mpm.grid import grid_op_node
+from mls_mpm.sizes import n_live
 from mls_mpm.state import LANE_TASK, lane_span
 
 from .grid import grid_op_node_reverse
@@ -110,7 +111,7 @@ def step_loops_reverse(s: ti.template(), a: ti.template(), f, f0, f1):
             for p in range(lo, hi):
                 particle_adjoint(s, a, f, p, lane, f0, f1)
     else:
-        for p in range(s.n_particles):
+        for p in range(n_live(s)):
             particle_adjoint(s, a, f, p, 0, f0, f1)
 
 

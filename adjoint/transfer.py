@@ -6,6 +6,7 @@ from mls_mpm.grid import velocity_slot
 from mls_mpm.kernels import (along_slab, axis0_column, inside, join, node_N, outer_row, outer_slab, roll, row_offsets,
                              slab_dN, slab_dN_add, slab_offsets, stencil, weights)
 from mls_mpm.material import polar_rotation, rotated_stress
+from mls_mpm.sizes import n_live
 from mls_mpm.state import unpack_mp
 from mls_mpm.transfer import affine_momentum, control_sum
 
@@ -150,7 +151,8 @@ def record_fault_reverse(s: ti.template(), a: ti.template(), f, p):
     Stored as the largest f * N + (N - 1 - p) (atomic_max: the same under any parallel order); the reverse
     pass runs f downward, so the latest step is where the adjoint first went non-finite.
     """
-    ti.atomic_max(a.fault[None], ti.cast(f, ti.i64) * s.n_particles + (s.n_particles - 1 - p))
+    N = ti.cast(n_live(s), ti.i64)
+    ti.atomic_max(a.fault[None], ti.cast(f, ti.i64) * N + (N - 1 - p))
 
 
 @ti.func
@@ -166,7 +168,7 @@ def check_particle_reverse(s: ti.template(), a: ti.template(), f, p, adj_x, adj_
 def g2p_reverse(s: ti.template(), a: ti.template(), f: ti.i32):
     """Reverse G2P of step f (twin of mls_mpm.transfer.g2p): dL/d(x, v, C, F) of step f + 1 from slot (f + 1) % 2,
     its G2P parts added to slot f % 2 (the reverse pass itself keeps them in registers: adjoint.step)."""
-    for p in range(s.n_particles):
+    for p in range(n_live(s)):
         src, dst = (f + 1) % 2, f % 2
         adj_x, adj_F = g2p_particle_reverse(s, a, f, p, 0, a.adj_x[src, p], a.adj_v[src, p], a.adj_C[src, p],
                                             a.adj_F[src, p])
@@ -178,7 +180,7 @@ def g2p_reverse(s: ti.template(), a: ti.template(), f: ti.i32):
 def p2g_reverse(s: ti.template(), a: ti.template(), f: ti.i32):
     """Reverse P2G of step f (twin of mls_mpm.transfer.p2g): its parts added to slot f % 2, then, at a control
     step, dL/dF_pc^k += dL/dF_p^f (eq 55) for a particle on the grid (slot f % 2 standing for the whole adjoint)."""
-    for p in range(s.n_particles):
+    for p in range(n_live(s)):
         dst = f % 2
         adj_x, adj_v, adj_C, adj_F = p2g_particle_reverse(s, a, f, p)
         add_own(a.adj_x, dst, p, adj_x)

@@ -16,6 +16,7 @@ import taichi as ti
 
 from . import ot
 from .kernels import splat_particle
+from .sizes import n_live
 from .errors import UserError
 
 OT_KINDS = ("ot", "color_ot")  # loss grids whose term ot_loss computes in numpy
@@ -221,7 +222,7 @@ def splat_value(s: ti.template(), g: ti.template(), p):
 def splat(s: ti.template(), g: ti.template(), f: ti.i32):
     """P2G of particle mass (or color-mass) of step f onto loss grid g, with g's own dx."""
     ti.loop_config(serialize=s.serial_losses)
-    for p in range(s.n_particles):
+    for p in range(n_live(s)):
         splat_particle(g.m, s.x[f, p], g.inv_dx, splat_value(s, g, p))  # nodes beyond the domain dropped
 
 
@@ -255,7 +256,7 @@ def grid_loss(s: ti.template(), g: ti.template()):
 def position_loss(s: ti.template(), f: ti.i32):
     """L += sum_p 1/2 |x_p - x_pu|^2 (eq 10)."""
     ti.loop_config(serialize=s.serial_losses)
-    for p in range(s.n_particles):
+    for p in range(n_live(s)):
         s.loss[None] += 0.5 * (s.x[f, p] - s.target_x[p]).norm_sqr()
 
 

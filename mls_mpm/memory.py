@@ -7,9 +7,11 @@ by part, so that a refusal names the part that does not fit and the scene key th
 from dataclasses import dataclass
 
 from .config import ConfigError
+from .sizes import particle_capacity
 
 F64 = 8  # bytes of a numpy float64: the arrays the loss and the controls hold before upload
 I64 = 8  # bytes of a fault code
+SIZES = 3 * 4  # State.sizes: N and the lanes' shares of it, i32
 
 
 @dataclass(frozen=True)
@@ -39,7 +41,9 @@ def parts(cfg, n_particles, grids=(), position_loss=False, tape=False):
     particles carry colours; position_loss: the particles carry target positions.
     """
     w = 8 if cfg.dtype == "f64" else 4
-    N, T, n, K, d = n_particles, cfg.steps, cfg.n_grid, cfg.n_controls, cfg.dim
+    T, n, K, d = cfg.steps, cfg.n_grid, cfg.n_controls, cfg.dim
+    # a Simulator's particle fields hold sizes.particle_capacity(N) particles (the Tape's copy exactly N)
+    N = n_particles if tape else particle_capacity(n_particles)
     nodes = n ** d  # the grid grows as n_grid^dim per stored step
     state = 2 * d + 2 * d * d  # x, v (d each), C, F (d^2 each) of one particle
     node = 1 + 2 * d  # m, p, v of one node
@@ -48,7 +52,7 @@ def parts(cfg, n_particles, grids=(), position_loss=False, tape=False):
     copies = 2 if tape else 1  # needs_grad doubles every differentiated field
     colors = any(ch == 3 for _, ch, _ in grids)
     out = [
-        Part(f"the particle states (x, v, C, F) of {T + 1} steps x {N} particles",
+        Part(f"the particle states (x, v, C, F) of {T + 1} steps x {n_particles} particles",
              "sim.steps or sim.particles_per_cell",
              copies * (T + 1) * N * state * w),
         Part(f"the grid states ({'m, p, v' if tape else 'm, p'}) of {T} steps on the {n}{sq} grid",
@@ -57,7 +61,7 @@ def parts(cfg, n_particles, grids=(), position_loss=False, tape=False):
              # + (without the Tape) the one velocity slot and the adjoint's grid
              copies * T * nodes * stored * w + (0 if tape else nodes * (d + node) * w)),
     ]
-    lanes = 0 if tape else cfg.lanes(N)
+    lanes = 0 if tape else cfg.lanes(n_particles)
     if lanes:  # forward private grids (m, p) and the adjoint's (dL/dv); one step's G_p (State.G_step); the barrier's
         # counters (State.sync, State.progress: state.PROGRESS_LINE = 16 a lane, mls_mpm/persistent.py); the active
         # boxes of every step and lane (State.box, State.lane_box: 2 dim i32 each, mls_mpm/active.py)
@@ -77,16 +81,18 @@ def parts(cfg, n_particles, grids=(), position_loss=False, tape=False):
     per_particle = (3 * colors + d * position_loss) * w  # colours c_p, target positions x_pu
     controls = K * N * d * d
     if tape:
-        field = 2 * controls * w + N * per_particle + 2 * w + 2 * I64  # F_pc and its grad, loss, faults
+        # F_pc and its grad, loss, faults, the count (State.sizes)
+        field = 2 * controls * w + N * per_particle + 2 * w + 2 * I64 + SIZES
         numpy = controls * (w + 2 * F64) + N * state * F64  # the controls' upload, the gradient, the state of step 0
     else:
-        # F_pc, dL/dF_pc, the adjoint's two particle slots (x, v, C, F), loss, faults
-        field = 2 * controls * w + N * (2 * state * w + per_particle) + w + 3 * I64
-        # the caller's controls, a trial or gradient copy and the returned gradient (f64), the upload's cast copy;
-        # step 0's arrays (f64 and the cast)
-        numpy = controls * (3 * F64 + w) + N * state * (F64 + w)
-    out.append(Part(f"the controls ({K} x {N} particles) and adjoints", "sim.particles_per_cell or steps / sim.stride",
-                    field, numpy))
+        # F_pc, dL/dF_pc, the adjoint's two particle slots (x, v, C, F), loss, faults, the count (State.sizes)
+        field = 2 * controls * w + N * (2 * state * w + per_particle) + w + 3 * I64 + SIZES
+        # the caller's controls, a trial or gradient copy and the returned gradient (f64), the upload's cast copy
+        # (and, where the capacity exceeds N, the upload's buffer of its rows); step 0's arrays (f64 and the cast)
+        live = K * n_particles * d * d  # the controls of the N simulated particles, as the caller passes them
+        numpy = live * (3 * F64 + w) + (controls * w if N > n_particles else 0) + n_particles * state * (F64 + w)
+    out.append(Part(f"the controls ({K} x {n_particles} particles) and adjoints",
+                    "sim.particles_per_cell or steps / sim.stride", field, numpy))
     return out
 
 

@@ -16,6 +16,7 @@ from .errors import SimulationError
 from .losses import ColorLoss, PositionLoss
 from .memory import check_memory, loss_grid_shapes
 from .persistent import persistent_pass
+from .sizes import particle_capacity
 from .state import FAULT_LEFT_GRID, FAULT_NON_FINITE, FAULT_NONE, State, read_step, upload_loss, write_step, write_x
 from .step import clear_grid, run_parallel, run_serial
 from .tape import tape_gradient, tape_gradients_in_child
@@ -94,8 +95,9 @@ class Simulator:
         self._serial = cfg.serial(self.n_particles)
         self.fields = State(cfg, self.n_particles, loss_grids=loss.grids if loss else (),
                             position_loss=isinstance(loss, PositionLoss), colors=isinstance(loss, ColorLoss),
-                            lanes=cfg.lanes(self.n_particles))
+                            lanes=cfg.lanes(self.n_particles), capacity=particle_capacity(self.n_particles))
         upload_loss(self.fields, self.loss)
+        self._controls_buffer = None  # the controls as F_pc holds them (the capacity's rows), for forward's upload
         self._adjoint = None
         self._start = 0
         self._stop = 0
@@ -179,7 +181,13 @@ class Simulator:
         s = self.fields
         self._forward_done = self._backward_done = False
         self._stored = start
-        s.F_pc.from_numpy(controls)
+        if s.capacity == self.n_particles:
+            s.F_pc.from_numpy(controls)
+        else:  # rows N.. of F_pc (sizes.particle_capacity) stay zero; the buffer spares an allocation a pass
+            if self._controls_buffer is None:
+                self._controls_buffer = np.zeros(s.F_pc.shape + (self.dim, self.dim), self.np_dtype)
+            self._controls_buffer[:, :self.n_particles] = controls
+            s.F_pc.from_numpy(self._controls_buffer)
 
         def begin():
             s.clear_faults()
@@ -230,7 +238,8 @@ class Simulator:
                                   "cause: a forward state near a singularity or a gradient grown too large over a "
                                   "long horizon (try fewer steps, smaller controls or optimize.clip)")
         self._backward_done = True
-        return a.adj_F_pc.to_numpy(dtype=np.float64)  # cast as it is copied: one array, not an f32 one and its cast
+        # cast as it is copied: one array, not an f32 one and its cast; the first N of the capacity's rows
+        return self._live_rows(a.adj_F_pc.to_numpy(dtype=np.float64), axis=1)
 
     @property
     def grad_x0(self):
@@ -259,7 +268,7 @@ class Simulator:
         L = losses.evaluate(s, T)
         a = self._adjoint_state()
         evaluate_reverse(s, a, T)
-        return L, a.adj_x.to_numpy(dtype=np.float64)[T % 2]
+        return L, self._live_rows(a.adj_x.to_numpy(dtype=np.float64)[T % 2], axis=0)
 
     @_live
     def state(self, n):
@@ -321,7 +330,13 @@ class Simulator:
         if not self._backward_done:
             raise RuntimeError(f"{name}: no successful backward pass (none yet, it raised, or a forward pass ran "
                                "since); call backward() after forward(controls) first")
-        return getattr(self._adjoint, field).to_numpy(dtype=np.float64)[self._stop % 2]
+        return self._live_rows(getattr(self._adjoint, field).to_numpy(dtype=np.float64)[self._stop % 2], axis=0)
+
+    def _live_rows(self, array, axis):
+        """The simulated particles' entries of an array read from a particle field (axis: the particle axis)."""
+        if array.shape[axis] == self.n_particles:
+            return array
+        return np.ascontiguousarray(np.take(array, np.arange(self.n_particles), axis=axis))
 
     def _adjoint_state(self):
         if self._adjoint is None:

@@ -5,6 +5,7 @@ import taichi as ti
 
 from .losses import OT_KINDS, ColorLoss, PositionLoss
 from .runtime import real
+from .sizes import n_live
 
 FAULT_NONE = 2 ** 62  # fault[k] holds min(f * N + p) over faulty (step f, particle p), or this
 FAULT_LEFT_GRID = 0  # a particle's 4x4 stencil left the grid
@@ -65,12 +66,12 @@ PROGRESS_LINE = 16
 
 @ti.func
 def lane_span(s: ti.template(), item):
-    """The lane of item `item` of a lane loop and its particles lo..hi-1: the lane's share of s.lane_chunk particles
-    cut into LANE_TASK runs of s.lane_item, in index order (a run past the lane's last particle is empty)."""
+    """The lane of item `item` of a lane loop and its particles lo..hi-1: the lane's share of lane_chunk particles
+    cut into LANE_TASK runs of lane_item, in index order (a run past the lane's last particle is empty)."""
     lane = item // LANE_TASK
-    end = ti.min((lane + 1) * s.lane_chunk, s.n_particles)
-    lo = ti.min(lane * s.lane_chunk + (item % LANE_TASK) * s.lane_item, end)
-    return lane, lo, ti.min(lo + s.lane_item, end)
+    end = ti.min((lane + 1) * s.sizes[1], n_live(s))  # sizes: N, lane_chunk, lane_item (State)
+    lo = ti.min(lane * s.sizes[1] + (item % LANE_TASK) * s.sizes[2], end)
+    return lane, lo, ti.min(lo + s.sizes[2], end)
 
 
 @ti.func
@@ -100,15 +101,20 @@ def unpack_mp_np(q):
 class State:
     """Fields of one simulation; per-step fields are shaped (steps + 1, ...) or (steps, ...) for the grid.
 
-    Scalars stored here (dx, dt, mu, ...) are compile-time constants of the kernels that take the state.
+    Scalars stored here (dx, dt, mu, ...) are compile-time constants of the kernels that take the state, except the
+    particle count and the lanes' shares of it (sizes: read at run time). The particle fields hold `capacity`
+    particles (default n_particles; Simulator: particle_capacity), of which the first n_particles are simulated.
     """
 
     def __init__(self, cfg, n_particles, loss_grids=(), position_loss=False, colors=False, needs_grad=False,
-                 lanes=0, every_velocity=False):
+                 lanes=0, every_velocity=False, capacity=None):
         dt_ = real(cfg.dtype)
         T = cfg.steps
         d = self.dim = cfg.dim
-        self.n_particles = n_particles
+        self.n_particles = n_particles  # host code's; kernels read n_live(s)
+        self.capacity = n_particles if capacity is None else capacity
+        if self.capacity < n_particles:
+            raise ValueError(f"State: capacity {self.capacity} < {n_particles} particles")
         self.steps = T
         self.n_grid = cfg.n_grid
         self.dx = cfg.dx
@@ -136,7 +142,7 @@ class State:
         # the Tape's derivative of the quotient) does not underflow to 0, still far below f32's resolution
         self.m_eps = (1e-20 if cfg.dtype == "f64" else 1e-12) * cfg.m_p
         g = needs_grad
-        N = n_particles
+        N = self.capacity
         grid = self.grid_shape = (cfg.n_grid,) * d  # n_grid^dim nodes
         self.x = ti.Vector.field(d, dt_, shape=(T + 1, N), needs_grad=g)  # position x_p^n
         self.v = ti.Vector.field(d, dt_, shape=(T + 1, N), needs_grad=g)  # velocity v_p^n
@@ -178,6 +184,8 @@ class State:
             for lg in loss_grids
         ]
         self.active_grids = list(self.loss_grids)  # the loss grids whose terms the loss sums (schedule stages)
+        self.sizes = ti.field(ti.i32, shape=3)  # N, lane_chunk, lane_item: what the kernels read of the count
+        self.sizes.from_numpy(np.array([n_particles, self.lane_chunk, self.lane_item], np.int32))
 
     def grid_mass(self):
         """m_i^n of steps 0..T-1 in numpy, shaped (T,) + grid_shape."""
@@ -217,15 +225,24 @@ def upload_loss(s, loss, grids=None):
         if spec.alpha is not None:
             g.alpha.from_numpy(spec.alpha.astype(np_dtype))
     if isinstance(loss, PositionLoss):
-        s.target_x.from_numpy(loss.target.astype(np_dtype))
+        s.target_x.from_numpy(padded(loss.target.astype(np_dtype), s.capacity))
     if isinstance(loss, ColorLoss):
-        s.color.from_numpy(loss.colors.astype(np_dtype))
+        s.color.from_numpy(padded(loss.colors.astype(np_dtype), s.capacity))
+
+
+def padded(rows, capacity):
+    """rows (N, ...) as a particle field of `capacity` entries holds them: rows N.. zero."""
+    if len(rows) == capacity:
+        return rows
+    out = np.zeros((capacity,) + rows.shape[1:], rows.dtype)
+    out[:len(rows)] = rows
+    return out
 
 
 @ti.kernel
 def write_step(s: ti.template(), f: ti.i32, x: ti.types.ndarray(), v: ti.types.ndarray(),
                C: ti.types.ndarray(), F: ti.types.ndarray()):
-    for p in range(s.n_particles):
+    for p in range(n_live(s)):
         for d in ti.static(range(s.dim)):
             s.x[f, p][d] = x[p, d]
             s.v[f, p][d] = v[p, d]
@@ -237,7 +254,7 @@ def write_step(s: ti.template(), f: ti.i32, x: ti.types.ndarray(), v: ti.types.n
 @ti.kernel
 def write_x(s: ti.template(), f: ti.i32, x: ti.types.ndarray()):
     """Replace the positions of step f alone."""
-    for p in range(s.n_particles):
+    for p in range(n_live(s)):
         for d in ti.static(range(s.dim)):
             s.x[f, p][d] = x[p, d]
 
@@ -245,7 +262,7 @@ def write_x(s: ti.template(), f: ti.i32, x: ti.types.ndarray()):
 @ti.kernel
 def read_step(s: ti.template(), f: ti.i32, x: ti.types.ndarray(), v: ti.types.ndarray(),
               C: ti.types.ndarray(), F: ti.types.ndarray()):
-    for p in range(s.n_particles):
+    for p in range(n_live(s)):
         for d in ti.static(range(s.dim)):
             x[p, d] = s.x[f, p][d]
             v[p, d] = s.v[f, p][d]

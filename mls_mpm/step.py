@@ -11,6 +11,7 @@ import taichi as ti
 
 from .active import empty_box, load_box, merge_box, node_in, store_box, volume, widen
 from .grid import grid_op_node
+from .sizes import n_live
 from .state import LANE_TASK, lane_span
 from .transfer import check_particle, g2p_particle, p2g_particle, particle_G
 
@@ -62,7 +63,7 @@ def step_loops(s: ti.template(), f):
         for _ in range(1):
             lo, hi = empty_box(s)
             store_box(s.box, f, lo, hi)  # box f empty, widened below by the particles of step f
-        for p in range(s.n_particles):
+        for p in range(n_live(s)):
             s.G_step[p] = particle_G(s, f, p)
         for item in range(s.lanes * LANE_TASK):  # one task per lane, one thread each: state.LANE_TASK
             lane, lo, hi = lane_span(s, item)
@@ -75,11 +76,11 @@ def step_loops(s: ti.template(), f):
         for k in range(volume(b0, b1)):  # the grid loop over the step's active box only (active.py)
             grid_node(s, f, node_in(b0, b1, k))
     else:
-        for p in range(s.n_particles):
+        for p in range(n_live(s)):
             check_particle(s, f, p, p2g_particle(s, f, p, 0, particle_G(s, f, p)))
         for I in ti.grouped(ti.ndrange(*s.grid_shape)):
             grid_node(s, f, I)
-    for p in range(s.n_particles):
+    for p in range(n_live(s)):
         g2p_particle(s, f, p)
 
 

@@ -9,6 +9,7 @@ from .grid import velocity_slot
 from .kernels import (along_slab, axis0, carry, inside, join, node_N, outer_row, outer_slab, row_offsets, slab_offsets,
                       stencil, weights)
 from .material import stress
+from .sizes import n_live
 from .state import FAULT_LEFT_GRID, FAULT_NON_FINITE, pack_mp
 
 
@@ -19,7 +20,7 @@ def record_fault(s: ti.template(), kind: ti.template(), f, p):
     atomic_min makes the report the same under any parallel order. check_particle (the only caller) runs in
     the production step kernels and check_step, never under ti.ad.Tape (which runs p2g, grid_op, g2p).
     """
-    ti.atomic_min(s.fault[kind], ti.cast(f, ti.i64) * s.n_particles + p)
+    ti.atomic_min(s.fault[kind], ti.cast(f, ti.i64) * ti.cast(n_live(s), ti.i64) + p)
 
 
 @ti.func
@@ -166,18 +167,18 @@ def check_particle(s: ti.template(), f, p, G):
 @ti.kernel
 def p2g(s: ti.template(), f: ti.i32):
     """P2G of step f into grid f (the grid of step f must be zero)."""
-    for p in range(s.n_particles):
+    for p in range(n_live(s)):
         p2g_particle(s, f, p, 0, particle_G(s, f, p))
 
 
 @ti.kernel
 def g2p(s: ti.template(), f: ti.i32):
     """G2P: particle state f + 1 from particle state f and grid velocity f."""
-    for p in range(s.n_particles):
+    for p in range(n_live(s)):
         g2p_particle(s, f, p)
 
 
 @ti.kernel
 def check_step(s: ti.template(), f: ti.i32):
-    for p in range(s.n_particles):
+    for p in range(n_live(s)):
         check_particle(s, f, p, ti.Matrix.zero(float, s.dim, s.dim))
