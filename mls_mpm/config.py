@@ -64,7 +64,7 @@ def compile_mode() -> str:
     own IR optimizations off; LLVM still optimizes) or "optimized" (on). Measured on 2 cores (BENCHMARKS.md,
     "Compile time"): with the one-launch kernels of the parallel schedule, "optimized" compiles a 2D simulator's
     forward and reverse kernels in about 14 s and a 3D one's in about 110-140 s, "fast" in about 5 s and 20 s, and a
-    new shape in a new capacity (sizes.py) compiles afresh: a 30 s morph spent its whole budget compiling. "fast"
+    new shape (3D: of a new capacity, sizes.py) compiles afresh: a 30 s morph spent its whole budget compiling. "fast"
     runs 1.01-1.08x the optimized time per step (1.31x once, the f64 thesis-size backward) and gives the same
     results to the bit (tests/test_runtime.py). "optimized" pays for long runs of one scene whose kernels are
     cached. GPUs, and Taichi started for the Tape oracle, always get the optimizations

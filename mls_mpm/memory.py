@@ -7,7 +7,7 @@ by part, so that a refusal names the part that does not fit and the scene key th
 from dataclasses import dataclass
 
 from .config import ConfigError
-from .sizes import particle_capacity
+from .sizes import field_capacity
 
 F64 = 8  # bytes of a numpy float64: the arrays the loss and the controls hold before upload
 I64 = 8  # bytes of a fault code
@@ -34,16 +34,16 @@ def loss_grid_shapes(loss):
             for g in (loss.grids if loss is not None else ())]
 
 
-def parts(cfg, n_particles, grids=(), position_loss=False, tape=False):
-    """The parts of a Simulator's memory (tape=True: of the grad-enabled State that gradient_tape adds).
+def parts(cfg, n_particles, grids=(), position_loss=False, tape=False, capacity=None):
+    """The parts of a Simulator's memory (tape=True: of the grad-enabled State that gradient_tape adds), its
+    particle fields holding `capacity` particles (None: sizes.field_capacity; the Tape's copy: exactly N).
 
     grids: (res, channels, has_alpha) of each loss grid; a grid of 3 channels is a color loss, whose
     particles carry colours; position_loss: the particles carry target positions.
     """
     w = 8 if cfg.dtype == "f64" else 4
     T, n, K, d = cfg.steps, cfg.n_grid, cfg.n_controls, cfg.dim
-    # a Simulator's particle fields hold sizes.particle_capacity(N) particles (the Tape's copy exactly N)
-    N = n_particles if tape else particle_capacity(n_particles)
+    N = n_particles if tape else (field_capacity(d, n_particles) if capacity is None else capacity)
     nodes = n ** d  # the grid grows as n_grid^dim per stored step
     state = 2 * d + 2 * d * d  # x, v (d each), C, F (d^2 each) of one particle
     node = 1 + 2 * d  # m, p, v of one node
@@ -87,18 +87,18 @@ def parts(cfg, n_particles, grids=(), position_loss=False, tape=False):
     else:
         # F_pc, dL/dF_pc, the adjoint's two particle slots (x, v, C, F), loss, faults, the count (State.sizes)
         field = 2 * controls * w + N * (2 * state * w + per_particle) + w + 3 * I64 + SIZES
-        # the caller's controls, a trial or gradient copy and the returned gradient (f64), the upload's cast copy
-        # (and, where the capacity exceeds N, the upload's buffer of its rows); step 0's arrays (f64 and the cast)
-        live = K * n_particles * d * d  # the controls of the N simulated particles, as the caller passes them
-        numpy = live * (3 * F64 + w) + (controls * w if N > n_particles else 0) + n_particles * state * (F64 + w)
+        # the caller's controls, a trial or gradient copy and the returned gradient (f64), the upload's cast copy;
+        # step 0's arrays (f64 and the cast): N particles' worth, whatever the fields' capacity
+        live = K * n_particles * d * d
+        numpy = live * (3 * F64 + w) + n_particles * state * (F64 + w)
     out.append(Part(f"the controls ({K} x {n_particles} particles) and adjoints",
                     "sim.particles_per_cell or steps / sim.stride", field, numpy))
     return out
 
 
-def estimate_bytes(cfg, n_particles, grids=(), position_loss=False, tape=False):
+def estimate_bytes(cfg, n_particles, grids=(), position_loss=False, tape=False, capacity=None):
     """Bytes a Simulator allocates (tape=True: what gradient_tape adds), Taichi fields and numpy copies."""
-    return sum(p.bytes for p in parts(cfg, n_particles, grids, position_loss, tape))
+    return sum(p.bytes for p in parts(cfg, n_particles, grids, position_loss, tape, capacity))
 
 
 def available_bytes():
@@ -122,18 +122,26 @@ def limit(cfg):
     return (0.9 * free, "90% of the memory available; sim.max_memory_gb sets it") if free else (None, "")
 
 
-def check_memory(cfg, n_particles, grids=(), where="", position_loss=False, tape=False):
-    """Refuse, before allocating, what would not fit (cfg.max_memory_gb, else 90% of what is free now).
+def check_memory(cfg, n_particles, grids=(), where="", position_loss=False, tape=False, capacity=None):
+    """Refuse, before allocating, what would not fit (cfg.max_memory_gb, else 90% of what is free now); return the
+    particle capacity the fields are to hold: sizes.field_capacity, or exactly n_particles where only that fits (the
+    capacity's padding is never the reason for a refusal).
 
     grids: (res, channels, has_alpha) of each loss grid; where: a prefix naming the scene file, or "";
     n_particles may be an upper bound (a scene checked before its image is sampled). tape=True checks the
-    grad-enabled State of gradient_tape, on top of a Simulator already allocated.
+    grad-enabled State of gradient_tape, on top of a Simulator already allocated, whose fields hold `capacity`.
     """
-    ps = parts(cfg, n_particles, grids, position_loss, tape)
-    need = sum(p.bytes for p in ps)
     allowed, _ = limit(cfg)
     if allowed is not None and cfg.max_memory_gb and tape:  # the Simulator's own fields are already allocated
-        allowed -= estimate_bytes(cfg, n_particles, grids, position_loss)
+        allowed -= estimate_bytes(cfg, n_particles, grids, position_loss, capacity=capacity)
+        capacity = None
+    if capacity is None and not tape:
+        capacity = field_capacity(cfg.dim, n_particles)
+        padded = estimate_bytes(cfg, n_particles, grids, position_loss, capacity=capacity)
+        if allowed is not None and padded > allowed:
+            capacity = n_particles
+    ps = parts(cfg, n_particles, grids, position_loss, tape, capacity)
+    need = sum(p.bytes for p in ps)
     if allowed is not None and need > allowed:
         big = max(ps, key=lambda p: p.bytes)
         what = "the Tape's grad-enabled fields (gradient_tape) need" if tape else "the simulation needs"
@@ -142,3 +150,4 @@ def check_memory(cfg, n_particles, grids=(), where="", position_loss=False, tape
                           f"particles, a {cfg.n_grid}^{cfg.dim} grid, {cfg.dtype}), above the limit of "
                           f"{max(allowed, 0) / 2 ** 30:.3g} GiB; the largest part is {big.what} "
                           f"({big.bytes / 2 ** 30:.2f} GiB): lower {big.lower}{f32}, or raise sim.max_memory_gb")
+    return capacity

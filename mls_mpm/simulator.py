@@ -16,8 +16,8 @@ from .errors import SimulationError
 from .losses import ColorLoss, PositionLoss
 from .memory import check_memory, loss_grid_shapes
 from .persistent import persistent_pass
-from .sizes import particle_capacity
-from .state import FAULT_LEFT_GRID, FAULT_NON_FINITE, FAULT_NONE, State, read_step, upload_loss, write_step, write_x
+from .state import (FAULT_LEFT_GRID, FAULT_NON_FINITE, FAULT_NONE, State, read_rows, read_step, upload_loss, write_rows,
+                    write_step, write_x)
 from .step import clear_grid, run_parallel, run_serial
 from .tape import tape_gradient, tape_gradients_in_child
 from .transfer import check_step
@@ -87,7 +87,10 @@ class Simulator:
             loss.check(self.n_particles)
             _check_dim(cfg, loss)
             _check_backend(cfg, loss)
-        check_memory(cfg, self.n_particles, grids=loss_grid_shapes(loss), position_loss=isinstance(loss, PositionLoss))
+        # the particle capacity of the fields (sizes.field_capacity: the kernels of a 3D shape serve others of its
+        # capacity), exactly N where only that fits
+        capacity = check_memory(cfg, self.n_particles, grids=loss_grid_shapes(loss),
+                                position_loss=isinstance(loss, PositionLoss))
         self.loss = loss
         # the schedule by whether the workers are to be pinned (config.pins_workers), not by whether the probe of
         # mls_mpm/affinity.py singled them out, which can fail on a busy machine: the same schedule, and so the same
@@ -95,9 +98,8 @@ class Simulator:
         self._serial = cfg.serial(self.n_particles)
         self.fields = State(cfg, self.n_particles, loss_grids=loss.grids if loss else (),
                             position_loss=isinstance(loss, PositionLoss), colors=isinstance(loss, ColorLoss),
-                            lanes=cfg.lanes(self.n_particles), capacity=particle_capacity(self.n_particles))
+                            lanes=cfg.lanes(self.n_particles), capacity=capacity)
         upload_loss(self.fields, self.loss)
-        self._controls_buffer = None  # the controls as F_pc holds them (the capacity's rows), for forward's upload
         self._adjoint = None
         self._start = 0
         self._stop = 0
@@ -183,11 +185,8 @@ class Simulator:
         self._stored = start
         if s.capacity == self.n_particles:
             s.F_pc.from_numpy(controls)
-        else:  # rows N.. of F_pc (sizes.particle_capacity) stay zero; the buffer spares an allocation a pass
-            if self._controls_buffer is None:
-                self._controls_buffer = np.zeros(s.F_pc.shape + (self.dim, self.dim), self.np_dtype)
-            self._controls_buffer[:, :self.n_particles] = controls
-            s.F_pc.from_numpy(self._controls_buffer)
+        else:  # the first N rows of the capacity's (sizes.py), without a padded copy; the others stay zero
+            write_rows(s, s.F_pc, controls)
 
         def begin():
             s.clear_faults()
@@ -238,8 +237,11 @@ class Simulator:
                                   "cause: a forward state near a singularity or a gradient grown too large over a "
                                   "long horizon (try fewer steps, smaller controls or optimize.clip)")
         self._backward_done = True
-        # cast as it is copied: one array, not an f32 one and its cast; the first N of the capacity's rows
-        return self._live_rows(a.adj_F_pc.to_numpy(dtype=np.float64), axis=1)
+        if s.capacity == self.n_particles:
+            return a.adj_F_pc.to_numpy(dtype=np.float64)  # cast as it is copied: one array, not an f32 one and its cast
+        grad = np.empty(self.control_shape)  # the first N rows of the capacity's, cast as they are copied
+        read_rows(s, a.adj_F_pc, grad)
+        return grad
 
     @property
     def grad_x0(self):
@@ -297,7 +299,7 @@ class Simulator:
             raise ConfigError(f"gradient_tape: {why}; use sim.arch = cpu or cuda")
         controls = self._controls(controls)
         if self._tape_state is None:
-            check_memory(self.cfg, self.n_particles, grids=loss_grid_shapes(self.loss),
+            check_memory(self.cfg, self.n_particles, grids=loss_grid_shapes(self.loss), capacity=self.fields.capacity,
                          position_loss=isinstance(self.loss, PositionLoss), tape=True)
         if not runtime.RUNTIME.fits(self.cfg, tape=True):  # re-initialising here would free this Simulator's fields
             return tape_gradients_in_child([(self.cfg, self.state(0), self.loss, controls)], validation)[0][1]

@@ -1,10 +1,11 @@
 """The particle count as the kernels see it: a value read at run time, and the capacity the particle fields hold.
 
 The particle count N is not compiled into the kernels: they read it, and the lanes' shares of it, from State.sizes
-at run time, and a Simulator's particle fields are shaped for particle_capacity(N), one of a few sizes (about 4 a
+at run time, and a 3D Simulator's particle fields are shaped for particle_capacity(N), one of a few sizes (4 a
 doubling), their entries beyond N untouched (zero). A new shape whose count has the same capacity (and the same
 settings) then builds the same kernels, which Taichi's offline cache holds from the last run: a new initial shape
-needs no compile (3D: about 6 s a new shape). At most 19% more particle memory (memory.parts counts it).
+needs no compile (3D: about 5 s a new shape). At most 19% more particle memory (memory.parts counts it); 2D fields
+hold exactly N (field_capacity).
 """
 import taichi as ti
 
@@ -39,6 +40,15 @@ def particle_capacity(n: int) -> int:
     while spread(capacity) < CACHE_SPREAD:
         capacity += 1
     return capacity
+
+
+def field_capacity(dim: int, n: int) -> int:
+    """The particles a Simulator's fields hold by default: particle_capacity(n) in 3D, where a new shape's compile
+    costs about 5 s (a 3D fast preview of a new shape took 1.6x as long); n itself in 2D, where it costs about 1.5 s
+    and padding would cost up to 19% of the particle memory, which long 2D scenes fill (the f64 thesis size: 40 MiB
+    in fields of 1,456 against 36 for its 1,245 particles; BENCHMARKS.md, "Kernels cached across particle counts").
+    memory.check_memory falls back to n where the capacity would not fit."""
+    return particle_capacity(n) if dim == 3 else n
 
 
 @ti.func

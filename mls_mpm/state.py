@@ -252,6 +252,23 @@ def write_step(s: ti.template(), f: ti.i32, x: ti.types.ndarray(), v: ti.types.n
 
 
 @ti.kernel
+def write_rows(s: ti.template(), field: ti.template(), values: ti.types.ndarray()):
+    """field[k, p] = values[k, p] for the simulated particles p < N of a (K, capacity) matrix field (F_pc) from a
+    (K, N, dim, dim) array: an upload into fields of a larger capacity (sizes.py) without a padded copy."""
+    for k, p in ti.ndrange(field.shape[0], n_live(s)):
+        for i, j in ti.static(ti.ndrange(s.dim, s.dim)):
+            field[k, p][i, j] = values[k, p, i, j]
+
+
+@ti.kernel
+def read_rows(s: ti.template(), field: ti.template(), values: ti.types.ndarray()):
+    """values[k, p] = field[k, p] for p < N (the reverse of write_rows; a float64 array gets the cast entries)."""
+    for k, p in ti.ndrange(field.shape[0], n_live(s)):
+        for i, j in ti.static(ti.ndrange(s.dim, s.dim)):
+            values[k, p, i, j] = field[k, p][i, j]
+
+
+@ti.kernel
 def write_x(s: ti.template(), f: ti.i32, x: ti.types.ndarray()):
     """Replace the positions of step f alone."""
     for p in range(n_live(s)):

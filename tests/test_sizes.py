@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 import mls_mpm
-from conftest import blob, random_controls, scene_config
-from mls_mpm import memory, simulator
+from conftest import ball, blob, random_controls, scene_config
+from mls_mpm import memory
 from mls_mpm.sizes import CAPACITY_STEPS, particle_capacity
 
 pytestmark = pytest.mark.usefixtures("taichi_f64_module")
@@ -48,6 +48,12 @@ def run(sim, controls):
     return [np.float64(L), grad, sim.grad_x0, sim.grad_v0] + list(sim.state(sim.cfg.steps).values())
 
 
+def padded_everywhere(monkeypatch):
+    """2D Simulators with fields of particle_capacity(N), as 3D ones have by default (2D kernels compile in a
+    fraction of the 3D time: the mechanism is the same in both)."""
+    monkeypatch.setattr(memory, "field_capacity", lambda dim, n: particle_capacity(n))
+
+
 @pytest.mark.parametrize("schedule", ["serial", "parallel"])
 def test_padded_fields_give_the_exact_fields_results_to_the_bit(schedule, monkeypatch):
     cfg = scene_config(schedule=schedule, threads=2, steps=12, stride=4)
@@ -57,17 +63,32 @@ def test_padded_fields_give_the_exact_fields_results_to_the_bit(schedule, monkey
     rng = np.random.default_rng(3)
     loss = mls_mpm.MassLoss([rng.uniform(0, 1e-3, (32, 32))])
     controls = random_controls((cfg.n_controls, N, 2, 2), 0.05, seed=4)
+    exact = mls_mpm.Simulator(cfg, x0, loss=loss)  # 2D: exactly N (sizes.field_capacity)
+    padded_everywhere(monkeypatch)
     padded = mls_mpm.Simulator(cfg, x0, loss=loss)
-    monkeypatch.setattr(simulator, "particle_capacity", lambda n: n)
-    exact = mls_mpm.Simulator(cfg, x0, loss=loss)
     assert padded.fields.capacity == particle_capacity(N) and exact.fields.capacity == N
     assert (padded.fields.lanes > 0) == (schedule == "parallel")
     for a, b in zip(run(padded, controls), run(exact, controls)):
         assert a.shape == b.shape and a.tobytes() == b.tobytes()
-    assert padded.backward().shape == (cfg.n_controls, N, 2, 2)
 
 
-def test_a_fault_names_the_particle_in_padded_fields():
+def test_3d_fields_hold_the_capacity_with_the_exact_fields_results(monkeypatch):
+    cfg = scene_config(dim=3, steps=4, stride=2, schedule="serial")
+    x0 = ball()
+    N = len(x0)
+    rng = np.random.default_rng(5)
+    loss = mls_mpm.MassLoss([rng.uniform(0, 1e-3, (16, 16, 16))])
+    controls = random_controls((cfg.n_controls, N, 3, 3), 0.05, seed=6)
+    padded = mls_mpm.Simulator(cfg, x0, loss=loss)  # 3D: particle_capacity(N) (sizes.field_capacity)
+    monkeypatch.setattr(memory, "field_capacity", lambda dim, n: n)
+    exact = mls_mpm.Simulator(cfg, x0, loss=loss)
+    assert padded.fields.capacity == particle_capacity(N) > N == exact.fields.capacity
+    for a, b in zip(run(padded, controls), run(exact, controls)):
+        assert a.shape == b.shape and a.tobytes() == b.tobytes()
+
+
+def test_a_fault_names_the_particle_in_padded_fields(monkeypatch):
+    padded_everywhere(monkeypatch)
     cfg = scene_config(steps=6, stride=3)
     x0 = blob()
     sim = mls_mpm.Simulator(cfg, x0)
@@ -81,26 +102,38 @@ def test_a_fault_names_the_particle_in_padded_fields():
         sim.forward(controls)
 
 
-def test_memory_counts_the_capacity():
-    cfg = scene_config(steps=10)
+def test_memory_counts_the_capacity_and_falls_back_to_n_where_only_that_fits():
     N = 1100
     cap = particle_capacity(N)
     assert cap > N
-    state = 2 * 2 + 2 * 4  # x, v, C, F
-    parts = memory.parts(cfg, N)
-    assert parts[0].field_bytes == (cfg.steps + 1) * cap * state * 8 and parts[0].what.endswith(f"x {N} particles")
-    tape = memory.parts(cfg, N, tape=True)
-    assert tape[0].field_bytes == 2 * (cfg.steps + 1) * N * state * 8  # the Tape's copy holds exactly N
+    for dim, fields in ((2, N), (3, cap)):
+        cfg = scene_config(dim=dim, steps=10)
+        state = 2 * dim + 2 * dim * dim  # x, v, C, F
+        parts = memory.parts(cfg, N)
+        assert parts[0].field_bytes == (cfg.steps + 1) * fields * state * 8
+        assert parts[0].what.endswith(f"x {N} particles")
+        tape = memory.parts(cfg, N, tape=True)
+        assert tape[0].field_bytes == 2 * (cfg.steps + 1) * N * state * 8  # the Tape's copy holds exactly N
+    cfg = scene_config(dim=3, steps=10)
+    exact, padded = (memory.estimate_bytes(cfg, N, capacity=c) for c in (N, cap))
+    assert memory.check_memory(cfg, N) == cap
+    between = cfg.replace(max_memory_gb=(exact + padded) / 2 / 2 ** 30)
+    assert memory.check_memory(between, N) == N  # the padding is never the reason for a refusal
+    with pytest.raises(mls_mpm.ConfigError, match="the simulation needs"):
+        memory.check_memory(cfg.replace(max_memory_gb=0.9 * exact / 2 ** 30), N)
 
 
-# Builds the test scene with the given particle count in a fresh process (the Taichi cache of the test), runs a
-# forward and backward pass, and prints the number of kernels in the cache.
+# Builds the test scene with the given particle count in a fresh process (the Taichi cache of the test), its fields
+# of particle_capacity(N) as in 3D, runs a forward and backward pass, and prints the capacity.
 CHILD = '''
 import json, sys
 import numpy as np
 sys.path.insert(0, sys.argv[2])
 import mls_mpm
+from mls_mpm import memory
+from mls_mpm.sizes import particle_capacity
 from conftest import blob, scene_config
+memory.field_capacity = lambda dim, n: particle_capacity(n)
 n = int(sys.argv[1])
 cfg = scene_config(schedule="serial", steps=6, stride=3)
 x0 = blob(particles_per_cell=16)[:n]

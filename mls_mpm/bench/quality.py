@@ -8,7 +8,7 @@ through `mls-mpm morph` in a process of its own, `workers` at a time, each with 
 (total-variation distance of the node masses on the finest loss grid), mass_outside_target, color_error for a colour
 pair, and the wall time of the whole process (start-up and compilation included), which is what the targets bound.
 Each pair compiles in an empty Taichi offline cache of its own (removed afterwards), as a first run on a machine
-does (and a shape whose particle count falls in a capacity not compiled before: mls_mpm/sizes.py); warm_cache=True
+does (and a new 2D shape, or a 3D one in a capacity not compiled before: mls_mpm/sizes.py); warm_cache=True
 (--warm-cache) uses the user's cache instead, where an earlier run of the same pair leaves every kernel compiled. A
 pair whose process fails gets a row with its last stderr line and the suite goes on. The table (quality.md, ready
 for BENCHMARKS.md) and quality.csv are written atomically once every pair has finished.
