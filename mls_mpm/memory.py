@@ -134,14 +134,14 @@ def check_memory(cfg, n_particles, grids=(), where="", position_loss=False, tape
     allowed, _ = limit(cfg)
     if allowed is not None and cfg.max_memory_gb and tape:  # the Simulator's own fields are already allocated
         allowed -= estimate_bytes(cfg, n_particles, grids, position_loss, capacity=capacity)
-        capacity = None
-    if capacity is None and not tape:
+    if capacity is None:
         capacity = field_capacity(cfg.dim, n_particles)
-        padded = estimate_bytes(cfg, n_particles, grids, position_loss, capacity=capacity)
-        if allowed is not None and padded > allowed:
-            capacity = n_particles
     ps = parts(cfg, n_particles, grids, position_loss, tape, capacity)
     need = sum(p.bytes for p in ps)
+    if allowed is not None and need > allowed and not tape and capacity > n_particles:  # without the padding
+        capacity = n_particles
+        ps = parts(cfg, n_particles, grids, position_loss, tape, capacity)
+        need = sum(p.bytes for p in ps)
     if allowed is not None and need > allowed:
         big = max(ps, key=lambda p: p.bytes)
         what = "the Tape's grad-enabled fields (gradient_tape) need" if tape else "the simulation needs"

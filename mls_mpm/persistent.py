@@ -22,7 +22,7 @@ run_parallel, whose launches wait without spinning (persistent_pass, Simulator._
 import taichi as ti
 
 from .active import empty_box, load_box, node_in, store_box, volume, widen
-from .sizes import n_live
+from .sizes import lane_chunk, n_live
 from .state import LANE_TASK
 from .step import grid_node
 from .transfer import check_particle, g2p_particle, p2g_particle, particle_G
@@ -113,8 +113,8 @@ def own_nodes(s: ti.template(), lane, nodes):
 @ti.func
 def own_particles(s: ti.template(), lane):
     """Lane `lane`'s particles lo..hi-1: the share lane_span's LANE_TASK runs cover, in index order."""
-    lo = ti.min(lane * s.sizes[1], n_live(s))  # sizes: N, lane_chunk, lane_item (State)
-    return lo, ti.min(lo + s.sizes[1], n_live(s))
+    lo = ti.min(lane * lane_chunk(s), n_live(s))
+    return lo, ti.min(lo + lane_chunk(s), n_live(s))
 
 
 @ti.func

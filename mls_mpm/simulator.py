@@ -270,7 +270,7 @@ class Simulator:
         L = losses.evaluate(s, T)
         a = self._adjoint_state()
         evaluate_reverse(s, a, T)
-        return L, self._live_rows(a.adj_x.to_numpy(dtype=np.float64)[T % 2], axis=0)
+        return L, a.adj_x.to_numpy(dtype=np.float64)[T % 2, :self.n_particles]  # the fields may hold more (sizes.py)
 
     @_live
     def state(self, n):
@@ -332,13 +332,7 @@ class Simulator:
         if not self._backward_done:
             raise RuntimeError(f"{name}: no successful backward pass (none yet, it raised, or a forward pass ran "
                                "since); call backward() after forward(controls) first")
-        return self._live_rows(getattr(self._adjoint, field).to_numpy(dtype=np.float64)[self._stop % 2], axis=0)
-
-    def _live_rows(self, array, axis):
-        """The simulated particles' entries of an array read from a particle field (axis: the particle axis)."""
-        if array.shape[axis] == self.n_particles:
-            return array
-        return np.ascontiguousarray(np.take(array, np.arange(self.n_particles), axis=axis))
+        return getattr(self._adjoint, field).to_numpy(dtype=np.float64)[self._stop % 2, :self.n_particles]
 
     def _adjoint_state(self):
         if self._adjoint is None:

@@ -15,11 +15,11 @@ CAPACITY_STEPS = 4  # capacities per doubling
 # 4 KiB, one particle's entries of consecutive steps fall into the same L1 cache sets, and the reverse pass, which
 # reads steps f - 1, f and f + 1 together, ran 7-10% slower (3D, a capacity of 16,384: BENCHMARKS.md, "Kernels
 # cached across particle counts"). So a capacity is moved up to the next count whose strides of one and two steps
-# lie at least CACHE_SPREAD bytes from a multiple of CACHE_PAGE, for the bytes of every particle entry (2D and 3D,
-# f32 and f64: vectors and matrices).
+# lie at least CACHE_SPREAD bytes from a multiple of CACHE_PAGE, for the bytes of every particle entry: x, v, target
+# x (dim floats), colour (3), C, F, F_pc, G (dim^2), in f32 and f64, 2D and 3D.
 CACHE_PAGE = 4096
 CACHE_SPREAD = 256
-ENTRY_BYTES = (8, 12, 16, 24, 32, 36, 48, 72)
+ENTRY_BYTES = (8, 12, 16, 24, 32, 36, 72)
 
 
 def spread(capacity: int) -> int:
@@ -55,3 +55,15 @@ def field_capacity(dim: int, n: int) -> int:
 def n_live(s: ti.template()):
     """N, the particles state s simulates (a run-time value: its fields may hold more, see particle_capacity)."""
     return s.sizes[0]
+
+
+@ti.func
+def lane_chunk(s: ti.template()):
+    """The particles of one lane (State.lane_chunk, read at run time)."""
+    return s.sizes[1]
+
+
+@ti.func
+def lane_item(s: ti.template()):
+    """The particles of one item of a lane loop (State.lane_item, read at run time)."""
+    return s.sizes[2]

@@ -5,7 +5,7 @@ import taichi as ti
 
 from .losses import OT_KINDS, ColorLoss, PositionLoss
 from .runtime import real
-from .sizes import n_live
+from .sizes import lane_chunk, lane_item, n_live
 
 FAULT_NONE = 2 ** 62  # fault[k] holds min(f * N + p) over faulty (step f, particle p), or this
 FAULT_LEFT_GRID = 0  # a particle's 4x4 stencil left the grid
@@ -69,9 +69,9 @@ def lane_span(s: ti.template(), item):
     """The lane of item `item` of a lane loop and its particles lo..hi-1: the lane's share of lane_chunk particles
     cut into LANE_TASK runs of lane_item, in index order (a run past the lane's last particle is empty)."""
     lane = item // LANE_TASK
-    end = ti.min((lane + 1) * s.sizes[1], n_live(s))  # sizes: N, lane_chunk, lane_item (State)
-    lo = ti.min(lane * s.sizes[1] + (item % LANE_TASK) * s.sizes[2], end)
-    return lane, lo, ti.min(lo + s.sizes[2], end)
+    end = ti.min((lane + 1) * lane_chunk(s), n_live(s))
+    lo = ti.min(lane * lane_chunk(s) + (item % LANE_TASK) * lane_item(s), end)
+    return lane, lo, ti.min(lo + lane_item(s), end)
 
 
 @ti.func
